@@ -1,0 +1,83 @@
+"""Rigid-body geometry shared by every module: SE(3) matrices, quaternions, point transforms.
+
+Conventions (REP-103): metres, right-handed frames. A pose ``T_a_b`` is the 4x4 matrix that maps
+points expressed in frame ``b`` into frame ``a`` (so ``T_map_cam`` is the camera pose in the map).
+Quaternions are ``(x, y, z, w)`` as in ROS messages unless a name says ``wxyz``.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+__all__ = [
+    "make_T", "inv_T", "transform_points", "quat_to_R", "R_to_quat", "T_from_pos_quat",
+    "pos_quat_from_T", "is_valid_T", "rotation_angle", "relative_motion",
+]
+
+
+def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """4x4 homogeneous transform from a 3x3 rotation and a translation."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.asarray(t, dtype=float).reshape(3)
+    return T
+
+
+def inv_T(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid transform (uses R^T, not a general matrix inverse)."""
+    R = T[:3, :3]
+    Ti = np.eye(4)
+    Ti[:3, :3] = R.T
+    Ti[:3, 3] = -R.T @ T[:3, 3]
+    return Ti
+
+
+def transform_points(T: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """Apply ``T`` to an (N, 3) array of points, returning (N, 3) in the same dtype."""
+    P = np.asarray(P)
+    R = T[:3, :3].astype(P.dtype if P.dtype.kind == "f" else float)
+    t = T[:3, 3].astype(R.dtype)
+    return P @ R.T + t
+
+
+def quat_to_R(q_xyzw) -> np.ndarray:
+    """Rotation matrix from a quaternion (x, y, z, w); the quaternion need not be unit."""
+    return Rotation.from_quat(np.asarray(q_xyzw, dtype=float)).as_matrix()
+
+
+def R_to_quat(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion (x, y, z, w) with w >= 0 from a rotation matrix."""
+    q = Rotation.from_matrix(np.asarray(R, dtype=float)).as_quat()
+    return q if q[3] >= 0 else -q
+
+
+def T_from_pos_quat(p, q_xyzw) -> np.ndarray:
+    return make_T(quat_to_R(q_xyzw), p)
+
+
+def pos_quat_from_T(T: np.ndarray):
+    """(position (3,), quaternion xyzw (4,)) of a 4x4 transform."""
+    return T[:3, 3].copy(), R_to_quat(T[:3, :3])
+
+
+def is_valid_T(T, tol: float = 1e-3) -> bool:
+    """True when ``T`` is a finite rigid transform (orthonormal rotation, det +1)."""
+    T = np.asarray(T)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        return False
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=tol) or abs(np.linalg.det(R) - 1.0) > tol:
+        return False
+    return bool(np.allclose(T[3], [0, 0, 0, 1], atol=tol))
+
+
+def rotation_angle(R: np.ndarray) -> float:
+    """Angle (rad) of a rotation matrix."""
+    c = (np.trace(R[:3, :3]) - 1.0) / 2.0
+    return float(np.arccos(np.clip(c, -1.0, 1.0)))
+
+
+def relative_motion(T_a: np.ndarray, T_b: np.ndarray):
+    """Translation (m) and rotation (rad) between two poses of the same frame."""
+    D = inv_T(T_a) @ T_b
+    return float(np.linalg.norm(D[:3, 3])), rotation_angle(D[:3, :3])

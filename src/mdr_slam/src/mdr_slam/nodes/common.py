@@ -1,0 +1,62 @@
+"""Helpers shared by the nodes: parameters, throttled warnings, time checks, static tf."""
+from __future__ import annotations
+
+import numpy as np
+
+
+def get_params(defaults: dict, ns: str = "~") -> dict:
+    """Read every key of ``defaults`` from the parameter server (private namespace by default)."""
+    import rospy
+    return {k: rospy.get_param(ns + k, v) for k, v in defaults.items()}
+
+
+def parse_transform(text, default=None) -> np.ndarray:
+    """4x4 matrix from "x y z qx qy qz qw" (or "x y z yaw pitch roll"), as static_transform_publisher."""
+    from ..geometry import make_T, quat_to_R
+    from scipy.spatial.transform import Rotation
+    if text is None or (isinstance(text, str) and not text.strip()):
+        return np.eye(4) if default is None else default
+    vals = [float(v) for v in (text.split() if isinstance(text, str) else text)]
+    if len(vals) == 7:
+        return make_T(quat_to_R(vals[3:]), vals[:3])
+    if len(vals) == 6:
+        return make_T(Rotation.from_euler("ZYX", vals[3:]).as_matrix(), vals[:3])
+    raise ValueError("a transform is 'x y z qx qy qz qw' or 'x y z yaw pitch roll', got %r" % (text,))
+
+
+class Throttled:
+    """rospy log calls limited to one per ``period`` seconds per key (logwarn_throttle keys on the
+    call site only; here the key is the message kind, so distinct problems are all reported)."""
+
+    def __init__(self, period: float = 5.0):
+        self.period = period
+        self._last = {}
+        self.counts = {}
+
+    def __call__(self, key: str, text: str, level: str = "warn") -> None:
+        import time
+        import rospy
+        self.counts[key] = self.counts.get(key, 0) + 1
+        now = time.monotonic()
+        if now - self._last.get(key, -1e9) >= self.period:
+            self._last[key] = now
+            n = self.counts[key]
+            suffix = " (%d times so far)" % n if n > 1 else ""
+            getattr(rospy, "log" + level)("%s%s", text, suffix)
+
+
+class StampGuard:
+    """Detects time going backwards (a looping bag, a restarted clock) and duplicated stamps."""
+
+    def __init__(self):
+        self.last = None
+
+    def check(self, t: float) -> str:
+        """'ok', 'duplicate' or 'backwards' (after which the guard restarts from ``t``)."""
+        if self.last is None or t > self.last:
+            self.last = t
+            return "ok"
+        if t == self.last:
+            return "duplicate"
+        self.last = t
+        return "backwards"

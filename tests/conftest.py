@@ -1,0 +1,135 @@
+"""Shared fixtures: import path, shared data location, a private roscore for tests that need one."""
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SRC = os.path.join(ROOT, "src", "mdr_slam", "src")
+if SRC not in sys.path:  # core tests run without sourcing setup.bash too
+    sys.path.insert(0, SRC)
+
+SHARED_DATA = os.environ.get("MDR_SHARED_DATA", os.path.join(os.path.dirname(ROOT), "shared", "data"))
+
+
+def shared_data(*parts) -> str:
+    """Path under ../shared/data, or skip the test when that data is absent (a user's machine)."""
+    p = os.path.join(SHARED_DATA, *parts)
+    if not os.path.exists(p):
+        pytest.skip("shared data %s is absent" % p)
+    return p
+
+
+@pytest.fixture(scope="session")
+def root_dir():
+    return ROOT
+
+
+def _free_port() -> int:
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    return port
+
+
+@pytest.fixture(scope="session")
+def roscore(tmp_path_factory):
+    """A private roscore on a free port for the whole session; yields its ROS_MASTER_URI.
+
+    The URI is put into os.environ, so subprocesses (roslaunch, rosrun, rostopic) and the in-process
+    rospy client use this master and never a user's running one.
+    """
+    port = _free_port()
+    uri = "http://127.0.0.1:%d" % port
+    env = dict(os.environ, ROS_MASTER_URI=uri, ROS_IP="127.0.0.1",
+               ROS_LOG_DIR=str(tmp_path_factory.mktemp("roslog")))
+    env.pop("ROS_HOSTNAME", None)
+    proc = subprocess.Popen(["roscore", "-p", str(port)], env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, start_new_session=True)
+    import rosgraph
+    deadline = time.time() + 30
+    while True:
+        try:
+            rosgraph.Master("/pytest", master_uri=uri).getPid()
+            break
+        except Exception:
+            if time.time() > deadline or proc.poll() is not None:
+                os.killpg(proc.pid, signal.SIGKILL)
+                pytest.fail("roscore did not come up on port %d" % port)
+            time.sleep(0.2)
+    old = {k: os.environ.get(k) for k in ("ROS_MASTER_URI", "ROS_IP", "ROS_LOG_DIR")}
+    os.environ.update(ROS_MASTER_URI=uri, ROS_IP="127.0.0.1", ROS_LOG_DIR=env["ROS_LOG_DIR"])
+    yield uri
+    os.killpg(proc.pid, signal.SIGINT)
+    try:
+        proc.wait(10)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+    for k, v in old.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
+
+
+@pytest.fixture(scope="session")
+def rospy_client(roscore):
+    """This test process as a rospy node (rospy allows one init per process, so session scope)."""
+    import rospy
+    rospy.init_node("pytest_client", anonymous=True, disable_signals=True)
+    yield rospy
+
+
+class NodeProcess:
+    """A node or launch file started as a subprocess in its own process group."""
+
+    def __init__(self, cmd, env=None, log=None):
+        self.log = log
+        self.proc = subprocess.Popen(cmd, env=env or os.environ.copy(), start_new_session=True,
+                                     stdout=open(log, "wb") if log else subprocess.DEVNULL,
+                                     stderr=subprocess.STDOUT)
+
+    def stop(self, sig=signal.SIGINT, timeout=15):
+        if self.proc.poll() is None:
+            os.killpg(self.proc.pid, sig)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.wait(5)
+        return self.proc.returncode
+
+    def output(self) -> str:
+        return open(self.log, errors="replace").read() if self.log else ""
+
+
+@pytest.fixture
+def start_process(roscore, tmp_path):
+    """Start commands against the private master; all are stopped after the test."""
+    procs = []
+
+    def start(cmd, name="proc"):
+        p = NodeProcess(cmd, log=str(tmp_path / ("%s.log" % name)))
+        procs.append(p)
+        return p
+
+    yield start
+    for p in procs:
+        p.stop()
+
+
+def wait_for(predicate, timeout=20.0, period=0.05):
+    """Poll ``predicate`` until it is truthy or ``timeout`` passes; returns its last value."""
+    deadline = time.time() + timeout
+    while True:
+        v = predicate()
+        if v or time.time() > deadline:
+            return v
+        time.sleep(period)

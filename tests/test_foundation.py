@@ -1,0 +1,97 @@
+"""Workspace contract: Python 3.8 compatibility, licence, CLI, launch file, custom messages."""
+from __future__ import annotations
+
+import glob
+import os
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+
+import pytest
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _python_files():
+    files = glob.glob(os.path.join(ROOT, "src", "mdr_slam", "src", "**", "*.py"), recursive=True)
+    files += [f for f in glob.glob(os.path.join(ROOT, "src", "mdr_slam", "nodes", "*"))]
+    files += glob.glob(os.path.join(ROOT, "tests", "**", "*.py"), recursive=True)
+    files += glob.glob(os.path.join(ROOT, "scripts", "**", "*.py"), recursive=True)
+    return sorted(files)
+
+
+def test_code_is_python38_compatible():
+    """ROS Noetic robots run Python 3.8: vermin must find nothing that needs a newer Python."""
+    files = _python_files()
+    assert len(files) > 10
+    r = subprocess.run([os.path.join(os.path.dirname(sys.executable), "vermin"), "--no-tips", "--violations",
+                        "--target=3.8-", "--eval-annotations", "--backport", "dataclasses",
+                        "--no-parse-comments"] + files, capture_output=True, text=True)
+    assert r.returncode == 0, "code needs a Python newer than 3.8:\n" + r.stdout + r.stderr
+
+
+def test_licence_is_consistent():
+    assert "GNU GENERAL PUBLIC LICENSE" in open(os.path.join(ROOT, "LICENSE")).read(2000)
+    assert "Version 3" in open(os.path.join(ROOT, "LICENSE")).read(2000)
+    for pkg in ("mdr_slam", "mdr_slam_msgs"):
+        tree = ET.parse(os.path.join(ROOT, "src", pkg, "package.xml"))
+        assert tree.getroot().get("format") == "2"
+        assert tree.getroot().find("license").text == "GPL-3.0-or-later"
+
+
+def test_mdr_cli_lists_subcommands():
+    r = subprocess.run(["mdr", "--help"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    for cmd in ("sim", "import", "run", "eval", "bench"):
+        assert "\n    %s " % cmd in r.stdout, r.stdout
+    r = subprocess.run(["rosrun", "mdr_slam", "mdr", "--version"], capture_output=True, text=True)
+    assert r.returncode == 0 and "mdr_slam" in r.stdout, r.stderr
+
+
+def test_launch_lists_three_nodes():
+    r = subprocess.run(["roslaunch", "--nodes", "mdr_slam", "mdr.launch"], capture_output=True,
+                       text=True)
+    assert r.returncode == 0, r.stderr
+    nodes = set(r.stdout.split())
+    assert {"/pose_node", "/depth_node", "/fusion_node"} <= nodes
+    r = subprocess.run(["roslaunch", "--nodes", "mdr_slam", "mdr.launch", "bag:=/tmp/x.bag",
+                        "rviz:=true"], capture_output=True, text=True)
+    assert {"/bag_player", "/rviz"} <= set(r.stdout.split()), r.stdout + r.stderr
+
+
+def test_launch_args_reach_the_nodes():
+    r = subprocess.run(["roslaunch", "--dump-params", "mdr_slam", "mdr.launch", "bag:=/tmp/x.bag",
+                        "pose_source:=groundtruth", "calib:=/tmp/c.yaml"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    import yaml
+    params = yaml.safe_load(r.stdout)
+    assert params["/use_sim_time"] is True
+    assert params["/pose_node/source"] == "groundtruth"
+    assert params["/depth_node/calib"] == "/tmp/c.yaml"
+    r = subprocess.run(["roslaunch", "--dump-params", "mdr_slam", "mdr.launch"], capture_output=True,
+                       text=True)
+    assert yaml.safe_load(r.stdout)["/use_sim_time"] is False
+
+
+@pytest.mark.parametrize("kind,name", [
+    ("msg", "TrackingState"), ("msg", "KeyFrame"), ("msg", "KeyFrameArray"),
+    ("srv", "SaveMap"), ("srv", "LoadMap"), ("srv", "ExportMesh"), ("srv", "SaveTrajectory"),
+])
+def test_custom_messages_are_built(kind, name):
+    tool = "rosmsg" if kind == "msg" else "rossrv"
+    r = subprocess.run([tool, "show", "mdr_slam_msgs/" + name], capture_output=True, text=True)
+    assert r.returncode == 0 and r.stdout.strip(), r.stderr
+    files = glob.glob(os.path.join(ROOT, "src", "mdr_slam_msgs", kind, "*." + kind))
+    assert len(files) == (3 if kind == "msg" else 4)
+
+
+def test_core_imports_without_ros():
+    """The core library must not import rospy (nodes and conversions may)."""
+    code = ("import sys, importlib, pkgutil, mdr_slam\n"
+            "skip = ('mdr_slam.nodes', 'mdr_slam.conversions')\n"
+            "for m in pkgutil.walk_packages(mdr_slam.__path__, 'mdr_slam.'):\n"
+            "    if not m.name.startswith(skip): importlib.import_module(m.name)\n"
+            "bad = [m for m in ('rospy', 'rosbag', 'tf2_ros') if m in sys.modules]\n"
+            "print(bad); sys.exit(1 if bad else 0)\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.returncode == 0, r.stdout + r.stderr
