@@ -45,14 +45,14 @@ class StereoBagWriter:
         import genpy
         t = genpy.Time.from_sec(stamp)
         for side, img, frame in (("left", left, LEFT_FRAME), ("right", right, RIGHT_FRAME)):
-            msg = cv.numpy_to_image(img, encoding, stamp=t, frame_id=frame)
-            msg.header.seq = self.seq
-            self.bag.write(self.topics[side + "_image"], msg, t)
-            if camera is not None:
+            if camera is not None:  # camera_info first, so a reader has it with the image
                 model = camera.left if side == "left" else camera.right
                 info = cv.model_to_camera_info(model, stamp=t, frame_id=frame)
                 info.header.seq = self.seq
                 self.bag.write(self.topics[side + "_info"], info, t)
+            msg = cv.numpy_to_image(img, encoding, stamp=t, frame_id=frame)
+            msg.header.seq = self.seq
+            self.bag.write(self.topics[side + "_image"], msg, t)
         self.seq += 1
 
     def write_ground_truth(self, stamp: float, T_map_cam: np.ndarray, tf: bool = True) -> None:
