@@ -1,9 +1,471 @@
-"""Node 3: confidence-based global map fusion -> /mdr/map/points, /mdr/map/grid, map services."""
+"""Node 3: confidence-based global map fusion -> /mdr/map/points, /mdr/map/grid, map services.
+
+A thin shell around :class:`mdr_slam.fusion.VoxelMap` (paper section 3.4):
+
+* ``/mdr/depth/points`` (PointCloud2, camera frame) is paired with the camera pose at the cloud's
+  stamp (the paper's time synchronisation): by default tf2 ``map <- cloud frame`` at that stamp
+  (``~pose_source: tf``, waiting ``~tf_timeout`` s), or ``/mdr/pose`` through a message_filters
+  ApproximateTime synchroniser (``~pose_source: topic``, ``~sync_slop`` s).
+* each cloud is anchored to the latest keyframe (``/mdr/keyframes``) not newer than it; when the
+  pose node publishes corrected keyframe poses (local BA, loop closure) the map points follow.
+* ``/mdr/map/points`` (latched, ``~publish_rate`` Hz, voxel-downsampled for display: x, y, z,
+  intensity, confidence) and ``/mdr/map/grid`` (nav_msgs/OccupancyGrid, latched) for move_base.
+* services ``~save_map``, ``~load_map``, ``~reset``, ``~export_mesh``; ``~load_map`` param at
+  start; autosave on shutdown and every ``~autosave_period`` s (atomic writes).
+* bad input (malformed/empty clouds, NaN points, absurd depths, missing pose, time going
+  backwards) is logged (throttled) and skipped; the node never dies on input.
+"""
 from __future__ import annotations
+
+import os
+import threading
+import time
+
+import numpy as np
+
+from .common import StampGuard, Throttled, get_params
+
+DEFAULTS = {
+    "map_frame": "map",
+    "cloud_topic": "/mdr/depth/points",
+    "pose_topic": "/mdr/pose",
+    "keyframes_topic": "/mdr/keyframes",
+    "pose_source": "tf",            # tf: tf2 map <- cloud frame at the stamp; topic: /mdr/pose
+    "tf_timeout": 0.1,              # s to wait for the transform at the cloud's stamp
+    "sync_slop": 0.05,              # s, ApproximateTime slop for pose_source=topic
+    "sync_queue": 30,
+    "anchor_keyframes": True,       # anchor points to keyframes so corrections move them
+    # VoxelMap
+    "voxel_size": 0.02,
+    "radius": 0.0,                  # association radius (m); 0 = voxel_size
+    "normal_angle_deg": 45.0,
+    "normal_radius": 0.0,           # m; 0 = 4 voxels
+    "normal_max_nn": 16,
+    "confidence": True,             # false: plain voxel grid (ablation)
+    "min_confidence": 3,
+    "grace": 5.0,
+    "clean_every": 10,              # integrations between cleaning passes (0 = off)
+    "clean_period": 0.0,            # s between cleaning passes (0 = off)
+    "min_depth": 0.1,
+    "max_depth": 10.0,
+    "intensity_field": "intensity",
+    "weight_field": "weight",
+    # output
+    "publish_rate": 1.0,
+    "display_voxel": 0.05,          # m; 0 = publish every map point
+    "display_min_confidence": 2,
+    "publish_grid": True,
+    "grid_resolution": 0.05,
+    "grid_z_min": 0.1,
+    "grid_z_max": 1.5,
+    "grid_free_band": 0.3,
+    "grid_up_axis": "z",
+    "grid_min_confidence": 3,
+    # files
+    "map_path": "~/.ros/mdr_map.ply",
+    "load_map": "",
+    "autosave": True,
+    "autosave_period": 60.0,        # s; 0 = only on shutdown
+    "mesh_path": "~/.ros/mdr_mesh.ply",
+    "mesh_voxel": 0.02,
+    "mesh_width": 640,
+    "mesh_height": 480,
+    "mesh_hfov_deg": 90.0,
+    "mesh_min_confidence": 2,
+    "mesh_max_views": 100,          # camera poses of the run used as TSDF views (auto views if none)
+    "diagnostics_period": 1.0,
+    "omp_threads": 1,               # Open3D OpenMP threads (0 = OpenMP default: all cores)
+}
+
+
+def _rss_bytes() -> int:
+    try:
+        import psutil
+        return int(psutil.Process().memory_info().rss)
+    except ImportError:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+class FusionNode:
+    def __init__(self, p: dict):
+        import rospy
+        import tf2_ros
+        from nav_msgs.msg import OccupancyGrid
+        from sensor_msgs.msg import PointCloud2
+        from std_srvs.srv import Trigger
+        from mdr_slam_msgs.msg import KeyFrameArray
+        from mdr_slam_msgs.srv import ExportMesh, LoadMap, SaveMap
+        from ..fusion import VoxelMap
+        self.p = p
+        self.closed = False
+        self.warn = Throttled()
+        self.guard = StampGuard()
+        self.lock = threading.RLock()
+        self.map = VoxelMap.from_config(p)
+        self.map_path = os.path.expanduser(p["map_path"])
+        self.dirty = True
+        self.kf_ids = np.zeros(0, np.int64)
+        self.kf_stamps = np.zeros(0)
+        self.kf_poses = {}
+        self.views = []                      # camera poses for mesh export (subsampled)
+        self.n_integrated = 0
+        self.rate_window = []                # wall times of recent integrations
+        self.last_latency = float("nan")
+        self.last_proc = float("nan")
+        if p["load_map"]:
+            path = os.path.expanduser(p["load_map"])
+            try:
+                n = self.map.load(path)
+                rospy.loginfo("fusion_node: loaded %d map points from %s", n, path)
+            except (IOError, OSError, ValueError) as e:
+                rospy.logerr("fusion_node: could not load map %s: %s (starting empty)", path, e)
+        self.pub_points = rospy.Publisher("/mdr/map/points", PointCloud2, queue_size=1, latch=True)
+        self.pub_grid = rospy.Publisher("/mdr/map/grid", OccupancyGrid, queue_size=1, latch=True)
+        self.tf_buffer = tf2_ros.Buffer(cache_time=rospy.Duration(60.0))
+        self.tf_listener = tf2_ros.TransformListener(self.tf_buffer)
+        big = 1 << 26
+        if p["pose_source"] == "topic":
+            import message_filters
+            from geometry_msgs.msg import PoseStamped
+            self.sub_cloud = message_filters.Subscriber(p["cloud_topic"], PointCloud2, queue_size=5,
+                                                        buff_size=big)
+            self.sub_pose = message_filters.Subscriber(p["pose_topic"], PoseStamped, queue_size=50)
+            self.sync = message_filters.ApproximateTimeSynchronizer(
+                [self.sub_cloud, self.sub_pose], p["sync_queue"], p["sync_slop"])
+            self.sync.registerCallback(self.on_cloud_pose)
+        else:
+            if p["pose_source"] != "tf":
+                rospy.logwarn("fusion_node: unknown pose_source %r, using tf", p["pose_source"])
+            self.sub_cloud = rospy.Subscriber(p["cloud_topic"], PointCloud2, self.on_cloud,
+                                              queue_size=2, buff_size=big)
+        self.sub_kf = rospy.Subscriber(p["keyframes_topic"], KeyFrameArray, self.on_keyframes,
+                                       queue_size=20)
+        self.srvs = [rospy.Service("~save_map", SaveMap, self.srv_save),
+                     rospy.Service("~load_map", LoadMap, self.srv_load),
+                     rospy.Service("~reset", Trigger, self.srv_reset),
+                     rospy.Service("~export_mesh", ExportMesh, self.srv_mesh)]
+        self.timers = []
+        if p["publish_rate"] > 0:
+            self.timers.append(rospy.Timer(rospy.Duration(1.0 / p["publish_rate"]), self.on_publish))
+        if p["autosave"] and p["autosave_period"] > 0:
+            self.timers.append(rospy.Timer(rospy.Duration(p["autosave_period"]), self.on_autosave))
+        self.diag = None
+        try:
+            import diagnostic_updater
+            self.diag = diagnostic_updater.Updater()
+            self.diag.setHardwareID("mdr_slam")
+            self.diag.add("fusion", self.diagnostics)
+            self.timers.append(rospy.Timer(rospy.Duration(p["diagnostics_period"]),
+                                           lambda _e: self.diag.update()))
+        except ImportError:
+            rospy.logwarn("fusion_node: diagnostic_updater missing; no diagnostics")
+
+    # ------------------------------------------------------------------ input
+    def on_cloud(self, msg):
+        import rospy
+        import tf2_ros
+        from ..conversions import transform_stamped_to_matrix, ConversionError
+        try:
+            ts = self.tf_buffer.lookup_transform(self.p["map_frame"], msg.header.frame_id,
+                                                 msg.header.stamp, rospy.Duration(self.p["tf_timeout"]))
+            T = transform_stamped_to_matrix(ts)
+        except tf2_ros.TransformException as e:  # lookup, connectivity, extrapolation, timeout
+            self.warn("tf", "no pose for the cloud at %.3f (%s <- %r): %s; skipped" % (
+                msg.header.stamp.to_sec(), self.p["map_frame"], msg.header.frame_id, e))
+            return
+        except ConversionError as e:
+            self.warn("tfbad", "bad transform for the cloud: %s; skipped" % e)
+            return
+        self.integrate(msg, T)
+
+    def on_cloud_pose(self, cloud, pose):
+        from ..conversions import pose_stamped_to_matrix, ConversionError
+        try:
+            T = pose_stamped_to_matrix(pose)
+        except ConversionError as e:
+            self.warn("posebad", "bad pose paired with the cloud: %s; skipped" % e)
+            return
+        if pose.header.frame_id and pose.header.frame_id != self.p["map_frame"]:
+            self.warn("poseframe", "pose frame %r is not %r; skipped" % (
+                pose.header.frame_id, self.p["map_frame"]))
+            return
+        self.integrate(cloud, T)
+
+    def integrate(self, msg, T):
+        import rospy
+        from ..conversions import pointcloud2_to_arrays, ConversionError
+        t0 = time.monotonic()
+        stamp = msg.header.stamp.to_sec()
+        try:
+            arr = pointcloud2_to_arrays(msg)
+            if not all(k in arr for k in "xyz"):
+                raise ConversionError("cloud has no x, y, z fields")
+        except ConversionError as e:
+            self.warn("cloud", "malformed cloud: %s; skipped" % e)
+            return
+        P = np.stack([arr["x"], arr["y"], arr["z"]], axis=1)
+        if len(P) == 0:
+            self.warn("empty", "empty cloud at %.3f; skipped" % stamp)
+            return
+        state = self.guard.check(stamp)
+        if state != "ok":
+            self.warn(state, "cloud stamp %.3f is %s the last one; skipped" % (
+                stamp, "older than" if state == "backwards" else "equal to"))
+            return
+        inten = arr.get(self.p["intensity_field"])
+        w = arr.get(self.p["weight_field"])
+        try:
+            with self.lock:
+                if self.closed:
+                    return
+                anchor, T_anchor = self._anchor_for(stamp)
+                st = self.map.integrate(P, T, stamp, intensity=inten, weights=w,
+                                        anchor_id=anchor, T_map_anchor=T_anchor)
+        except Exception as e:  # the map must survive whatever a cloud contains
+            self.warn("integrate", "integration failed: %r; skipped" % (e,), "err")
+            return
+        if st.skipped:
+            self.warn("skip", "cloud at %.3f skipped: %s" % (stamp, st.skipped))
+            return
+        self.dirty = True
+        self.n_integrated += 1
+        now = time.monotonic()
+        self.last_proc = now - t0
+        self.last_latency = (rospy.Time.now() - msg.header.stamp).to_sec()
+        self.rate_window = [t for t in self.rate_window if now - t < 10.0] + [now]
+        self._remember_view(T)
+
+    def _anchor_for(self, stamp):
+        """The latest keyframe not newer than the cloud, and its current pose (under the lock)."""
+        if not self.p["anchor_keyframes"] or not len(self.kf_ids):
+            return None, None
+        k = np.nonzero(self.kf_stamps <= stamp + 1e-6)[0]
+        if not len(k):
+            return None, None
+        anchor = int(self.kf_ids[k[np.argmax(self.kf_stamps[k])]])
+        return anchor, self.kf_poses[anchor]
+
+    def _remember_view(self, T):
+        from ..geometry import relative_motion
+        if self.views:
+            d, a = relative_motion(self.views[-1], T)
+            if d < 0.2 and np.degrees(a) < 10.0:
+                return
+        self.views.append(T.copy())
+        if len(self.views) > 600:
+            self.views = self.views[::2]
+
+    def on_keyframes(self, msg):
+        from ..conversions import pose_to_matrix, ConversionError
+        corr = {}
+        for kf in msg.keyframes:  # one entry per keyframe (hundreds at most), not per point
+            try:
+                corr[int(kf.id)] = (kf.stamp.to_sec(), pose_to_matrix(kf.pose))
+            except ConversionError as e:
+                self.warn("kfbad", "keyframe %d has a bad pose: %s; ignored" % (kf.id, e))
+        if not corr:
+            return
+        with self.lock:
+            if self.closed:
+                return
+            for kid, (st, T) in corr.items():
+                self.kf_poses[kid] = T
+                hit = np.nonzero(self.kf_ids == kid)[0]
+                if len(hit):
+                    self.kf_stamps[hit[0]] = st
+                else:
+                    self.kf_ids = np.append(self.kf_ids, kid)
+                    self.kf_stamps = np.append(self.kf_stamps, st)
+            known = {k: T for k, (_, T) in corr.items() if k in self.map.anchors}
+            n = self.map.apply_corrections(known) if known else 0
+        if n:
+            import rospy
+            self.dirty = True
+            rospy.loginfo("fusion_node: %d map points follow corrected keyframes (reason %d)",
+                          n, msg.reason)
+
+    # ------------------------------------------------------------------ output
+    def on_publish(self, _event=None):
+        import rospy
+        if not self.dirty or self.closed:
+            return
+        self.dirty = False
+        try:
+            self.publish()
+        except Exception as e:
+            self.warn("publish", "publishing the map failed: %r" % (e,), "err")
+
+    def publish(self):
+        import rospy
+        from nav_msgs.msg import OccupancyGrid
+        from ..conversions import arrays_to_pointcloud2, matrix_to_pose
+        from ..fusion import grid_origin_T, occupancy_grid, voxel_downsample
+        p = self.p
+        mc_disp = p["display_min_confidence"] if p["confidence"] else 0
+        mc_grid = p["grid_min_confidence"] if p["confidence"] else 0
+        with self.lock:  # only the copy holds the lock; integration goes on meanwhile
+            c = self.map.to_cloud(min(mc_disp, mc_grid))
+        stamp = rospy.Time.now()
+        xyz = np.stack([c["x"], c["y"], c["z"]], 1).astype(np.float64)
+        grid = None
+        if p["publish_grid"]:
+            grid = occupancy_grid(xyz[c["confidence"] >= mc_grid], p["grid_resolution"],
+                                  p["grid_z_min"], p["grid_z_max"], p["grid_up_axis"],
+                                  p["grid_free_band"])
+        keep = c["confidence"] >= mc_disp
+        xyz = xyz[keep]
+        inten, conf = c["intensity"][keep], c["confidence"][keep].astype(np.float64)
+        if p["display_voxel"] > 0 and len(xyz):
+            _, xyz, _, ex = voxel_downsample(xyz, p["display_voxel"], None,
+                                             {"intensity": inten, "confidence": conf})
+            inten, conf = ex["intensity"], ex["confidence"]
+        self.pub_points.publish(arrays_to_pointcloud2(
+            {"intensity": np.asarray(inten, np.float32), "confidence": np.asarray(conf, np.float32)},
+            stamp, p["map_frame"], xyz=xyz))
+        if grid is not None:
+            data, origin, res = grid
+            msg = OccupancyGrid()
+            msg.header.stamp = stamp
+            msg.header.frame_id = p["map_frame"]
+            msg.info.map_load_time = stamp
+            msg.info.resolution = res
+            msg.info.height, msg.info.width = data.shape
+            msg.info.origin = matrix_to_pose(grid_origin_T(origin, p["grid_up_axis"], p["grid_z_min"]))
+            msg.data = data.reshape(-1).tolist()
+            self.pub_grid.publish(msg)
+
+    def diagnostics(self, stat):
+        from diagnostic_msgs.msg import DiagnosticStatus
+        now = time.monotonic()
+        rate = len([t for t in self.rate_window if now - t < 10.0]) / 10.0
+        n = len(self.map)
+        level = DiagnosticStatus.OK
+        text = "fusing"
+        if not self.n_integrated:
+            level, text = DiagnosticStatus.WARN, "no cloud integrated yet"
+        elif rate == 0:
+            level, text = DiagnosticStatus.WARN, "no cloud in the last 10 s"
+        stat.summary(level, text)
+        stat.add("integration rate (Hz)", "%.2f" % rate)
+        stat.add("last processing time (ms)", "%.1f" % (1e3 * self.last_proc))
+        stat.add("last latency stamp->map (s)", "%.3f" % self.last_latency)
+        stat.add("map points", str(n))
+        stat.add("clouds integrated", str(self.n_integrated))
+        stat.add("points removed by cleaning", str(self.map.n_removed))
+        stat.add("process RSS (MB)", "%.1f" % (_rss_bytes() / 1e6))
+        for k, v in sorted(self.warn.counts.items()):
+            stat.add("skipped: " + k, str(v))
+        return stat
+
+    # ------------------------------------------------------------------ files and services
+    def save(self, path=None, fmt=""):
+        path = os.path.expanduser(path or self.map_path)
+        if fmt:
+            root, ext = os.path.splitext(path)
+            if ext.lower() != "." + fmt.lower():
+                path = root + "." + fmt.lower()
+        elif os.path.splitext(path)[1].lower() not in (".ply", ".pcd"):
+            path += ".ply"
+        with self.lock:
+            n = self.map.save(path)
+        return path, n
+
+    def srv_save(self, req):
+        from mdr_slam_msgs.srv import SaveMapResponse
+        fmt = (req.format or "").strip().lower()
+        if fmt not in ("", "ply", "pcd"):
+            return SaveMapResponse(False, "format must be ply or pcd, got %r" % req.format, "", 0)
+        try:
+            path, n = self.save(req.path.strip() or None, fmt)
+        except (IOError, OSError, ValueError) as e:
+            return SaveMapResponse(False, "could not save: %s" % e, "", 0)
+        return SaveMapResponse(True, "saved %d points" % n, path, n)
+
+    def srv_load(self, req):
+        from mdr_slam_msgs.srv import LoadMapResponse
+        path = os.path.expanduser(req.path.strip())
+        if not path or not os.path.exists(path):
+            return LoadMapResponse(False, "no such file: %r" % req.path, len(self.map))
+        try:
+            with self.lock:
+                n = self.map.load(path, append=req.append)
+        except (IOError, OSError, ValueError) as e:
+            return LoadMapResponse(False, "could not load %s: %s" % (path, e), len(self.map))
+        self.dirty = True
+        return LoadMapResponse(True, "map has %d points" % n, n)
+
+    def srv_reset(self, _req):
+        from std_srvs.srv import TriggerResponse
+        with self.lock:
+            self.map.reset()
+        self.guard = StampGuard()
+        self.views = []
+        self.dirty = True
+        return TriggerResponse(True, "map cleared")
+
+    def srv_mesh(self, req):
+        from mdr_slam_msgs.srv import ExportMeshResponse
+        from ..fusion.mesh import default_K, mesh_from_map, write_mesh
+        p = self.p
+        path = os.path.expanduser(req.path.strip() or p["mesh_path"])
+        voxel = float(req.voxel_length) if req.voxel_length > 0 else p["mesh_voxel"]
+        with self.lock:
+            cloud = self.map.to_cloud(p["mesh_min_confidence"] if p["confidence"] else 0)
+            views = list(self.views) or None
+        if views and len(views) > p["mesh_max_views"]:
+            # every view renders the whole map: bound the export time
+            views = [views[i] for i in np.linspace(0, len(views) - 1, p["mesh_max_views"]).astype(int)]
+        if len(cloud["x"]) == 0:
+            return ExportMeshResponse(False, "the map is empty", "", 0, 0)
+        try:
+            K = default_K(p["mesh_width"], p["mesh_height"], p["mesh_hfov_deg"])
+            mesh, nv = mesh_from_map(cloud, views, K, p["mesh_width"], p["mesh_height"], voxel,
+                                     max(voxel, p["voxel_size"]), 0, p["grid_up_axis"])
+            if len(mesh.triangles) == 0:
+                return ExportMeshResponse(False, "the TSDF produced no surface", "", 0, 0)
+            n_v, n_t = write_mesh(path, mesh)
+        except (IOError, OSError, ValueError, RuntimeError) as e:
+            return ExportMeshResponse(False, "mesh export failed: %s" % e, "", 0, 0)
+        return ExportMeshResponse(True, "%d views" % nv, path, n_v, n_t)
+
+    def on_autosave(self, _event=None):
+        import rospy
+        if len(self.map) == 0:
+            return
+        try:
+            path, n = self.save()
+            rospy.logdebug("fusion_node: autosaved %d points to %s", n, path)
+        except (IOError, OSError, ValueError) as e:
+            self.warn("autosave", "autosave to %s failed: %s" % (self.map_path, e), "err")
+
+    def shutdown(self):
+        """Autosave on exit (SIGINT/roslaunch stop): the map of a run is never lost."""
+        for t in self.timers:
+            t.shutdown()
+        with self.lock:
+            try:
+                if self.p["autosave"] and len(self.map):
+                    path, n = self.save()
+                    print("fusion_node: saved %d map points to %s" % (n, path), flush=True)
+            except Exception as e:  # report, never raise while shutting down
+                print("fusion_node: autosave failed: %r" % (e,), flush=True)
+            self.closed = True
+            self.map.close()
 
 
 def main():
     import rospy
+    from ..fusion import limit_openmp_threads
     rospy.init_node("fusion_node")
-    rospy.logwarn("fusion_node: not implemented yet (issue [fusion]); publishing nothing.")
-    rospy.spin()
+    p = get_params(DEFAULTS)
+    if p["omp_threads"] > 0:
+        limit_openmp_threads(p["omp_threads"])
+    node = FusionNode(p)
+    rospy.loginfo("fusion_node: fusing %s with poses from %s into %s (voxel %.3f m, confidence %s)",
+                  node.p["cloud_topic"], node.p["pose_source"], node.p["map_frame"],
+                  node.p["voxel_size"], node.p["confidence"])
+    try:
+        rospy.spin()
+    finally:
+        node.shutdown()
