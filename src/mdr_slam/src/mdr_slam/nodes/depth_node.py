@@ -1,9 +1,336 @@
-"""Node 2: ELAS stereo depth with the keyframe-guided Kalman temporal filter -> /mdr/depth/points."""
+"""Node 2: ELAS stereo depth with the keyframe-guided Kalman temporal filter -> /mdr/depth/points.
+
+Thin shell around :class:`mdr_slam.depth.StereoDepth`:
+
+- inputs ``left/image``, ``right/image`` (+ ``left/camera_info``, ``right/camera_info`` unless a
+  ``~calib`` file is given) through message_filters (ExactTime, or ApproximateTime with
+  ``~approximate_sync`` and ``~slop``);
+- the left camera pose at the image stamp from tf2 (``map`` <- camera frame, ``~use_tf``) or from
+  the ``~pose_source_topic`` PoseStamped stream through an interpolating time cache;
+- optional keyframe events and pose corrections from ``/mdr/keyframes`` (KeyFrameArray);
+- outputs ``/mdr/depth/points`` (PointCloud2 in the left optical frame at the image stamp, fields
+  x y z intensity variance n_obs), optionally ``/mdr/depth/image`` (32FC1, metres), and rate,
+  latency and drops on ``/diagnostics``.
+
+The callbacks only store the newest pair; one worker thread computes, so a slow frame drops the
+pairs that arrived meanwhile (counted) instead of building a backlog of stale images.
+Bad input is logged (throttled, one line per kind) and skipped; the node never dies on input.
+"""
 from __future__ import annotations
+
+import threading
+import time
+from typing import Optional
+
+import numpy as np
+
+from .common import StampGuard, Throttled, get_params
+
+DEFAULTS = {
+    "map_frame": "map",
+    "camera_frame": "",             # tf frame of the left camera; empty = the image's frame_id
+    "use_tf": True,                 # pose from tf2; False: from pose_source_topic
+    "pose_source_topic": "/mdr/pose",
+    "tf_timeout": 0.1,              # s to wait for tf / for the pose of an image stamp
+    "pose_max_gap": 0.25,           # s between two cached poses to interpolate between them
+    "keyframe_topic": "/mdr/keyframes",
+    "use_keyframe_events": True,    # follow the pose node's keyframes once it publishes any
+    "approximate_sync": False,
+    "slop": 0.01,
+    "queue_size": 5,
+    "calib": "",                    # calibration file(s) for inputs without camera_info
+    "publish_depth_image": False,
+    "diagnostic_period": 1.0,
+}
+
+
+class DepthNode:
+    def __init__(self, p: dict):
+        import rospy
+        import message_filters
+        from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+        from ..depth import DEPTH_DEFAULTS, PoseCache
+        self.p = p
+        self.warn = Throttled()
+        self.guard = StampGuard()
+        self.lock = threading.Lock()          # the filter: worker thread vs keyframe events
+        self.cv = threading.Condition()
+        self.pending = None
+        self.depth = None
+        self.camera_key = None
+        self.fixed_camera = None
+        self.depth_params = {k: p[k] for k in DEPTH_DEFAULTS}
+        self.counts = {"received": 0, "processed": 0, "dropped": 0, "skipped": 0, "published": 0}
+        self.last_latency = float("nan")
+        self.last_timings = {}
+        self.last_stats = {}
+        self.last_points = 0
+        self.t_start = time.monotonic()
+        self.kf_events_seen = False
+        self.kf_pending = []                  # (stamp, id) of keyframes not yet started
+
+        if p["calib"]:
+            self.fixed_camera = self._load_calib(p["calib"])
+        self.pub_points = rospy.Publisher("/mdr/depth/points", PointCloud2, queue_size=2)
+        self.pub_image = (rospy.Publisher("/mdr/depth/image", Image, queue_size=2)
+                          if p["publish_depth_image"] else None)
+        subs = [message_filters.Subscriber("left/image", Image, queue_size=2, buff_size=1 << 24),
+                message_filters.Subscriber("right/image", Image, queue_size=2, buff_size=1 << 24)]
+        if self.fixed_camera is None:
+            subs += [message_filters.Subscriber("left/camera_info", CameraInfo, queue_size=5),
+                     message_filters.Subscriber("right/camera_info", CameraInfo, queue_size=5)]
+        if p["approximate_sync"]:
+            self.sync = message_filters.ApproximateTimeSynchronizer(subs, p["queue_size"], p["slop"])
+        else:
+            self.sync = message_filters.TimeSynchronizer(subs, p["queue_size"])
+        self.sync.registerCallback(self.on_images)
+        self.subs = subs
+
+        self.tf_buffer = None
+        self.pose_cache = PoseCache(max_gap=p["pose_max_gap"])
+        if p["use_tf"]:
+            import tf2_ros
+            self.tf_buffer = tf2_ros.Buffer(cache_time=rospy.Duration(30.0))
+            self.tf_listener = tf2_ros.TransformListener(self.tf_buffer)
+        else:
+            from geometry_msgs.msg import PoseStamped
+            self.sub_pose = rospy.Subscriber(p["pose_source_topic"], PoseStamped, self.on_pose,
+                                             queue_size=100)
+        if p["use_keyframe_events"]:
+            try:
+                from mdr_slam_msgs.msg import KeyFrameArray
+                self.sub_kf = rospy.Subscriber(p["keyframe_topic"], KeyFrameArray, self.on_keyframes,
+                                               queue_size=20)
+            except ImportError as e:
+                rospy.logwarn("depth_node: mdr_slam_msgs unavailable (%s); automatic keyframes", e)
+
+        import diagnostic_updater
+        self.updater = diagnostic_updater.Updater()
+        self.updater.setHardwareID("mdr_depth")
+        self.updater.period = p["diagnostic_period"]
+        self.updater.add("depth", self._diagnostics)
+        self.worker = threading.Thread(target=self._work, name="depth_worker", daemon=True)
+        self.worker.start()
+        rospy.loginfo("depth_node: %s, temporal=%s, pose from %s, listening on %s and %s",
+                      "calib file" if self.fixed_camera is not None else "camera_info",
+                      p["temporal"], "tf" if p["use_tf"] else p["pose_source_topic"],
+                      rospy.resolve_name("left/image"), rospy.resolve_name("right/image"))
+
+    # ------------------------------------------------------------------ set-up helpers
+    def _load_calib(self, path):
+        import rospy
+        try:
+            from ..calib import load_stereo_calibration
+            cam = load_stereo_calibration(path)
+            rospy.loginfo("depth_node: calibration from %s (%dx%d, B=%.4f m)", path,
+                          cam.size[0], cam.size[1], cam.baseline)
+            return cam
+        except Exception as e:  # missing module, unreadable file: camera_info still works
+            rospy.logerr("depth_node: cannot use calib %r (%s); falling back to camera_info", path, e)
+            return None
+
+    def _camera_for(self, linfo, rinfo):
+        """StereoCamera for this pair; StereoDepth is (re)built when the calibration changes."""
+        from ..camera import StereoCamera
+        from ..conversions import camera_info_to_model
+        from ..depth import StereoDepth
+        if self.fixed_camera is not None:
+            key = "calib"
+            if self.camera_key != key:
+                self.depth = StereoDepth(self.fixed_camera, self.depth_params)
+                self.camera_key = key
+            return
+        key = (tuple(linfo.K), tuple(linfo.P), tuple(linfo.D), tuple(linfo.R), linfo.width,
+               linfo.height, tuple(rinfo.K), tuple(rinfo.P), tuple(rinfo.D), tuple(rinfo.R))
+        if key != self.camera_key:
+            cam = StereoCamera(camera_info_to_model(linfo), camera_info_to_model(rinfo))
+            self.depth = StereoDepth(cam, self.depth_params)
+            self.camera_key = key
+            import rospy
+            rospy.loginfo("depth_node: camera %dx%d fx=%.1f B=%.4f m%s", cam.size[0], cam.size[1],
+                          cam.fx, cam.baseline, "" if cam.is_rectified else " (rectifying)")
+
+    # ------------------------------------------------------------------ callbacks
+    def on_images(self, left, right, linfo=None, rinfo=None):
+        with self.cv:
+            self.counts["received"] += 1
+            if self.pending is not None:
+                self.counts["dropped"] += 1   # the worker is busy: keep only the newest pair
+            self.pending = (left, right, linfo, rinfo, time.monotonic())
+            self.cv.notify()
+
+    def on_pose(self, msg):
+        from ..conversions import ConversionError, pose_stamped_to_matrix
+        try:
+            T = pose_stamped_to_matrix(msg)
+        except ConversionError as e:
+            self.warn("pose", "depth_node: pose skipped: %s" % e)
+            return
+        t = msg.header.stamp.to_sec()
+        if self.pose_cache.latest is not None and t < self.pose_cache.latest - 1.0:
+            self.pose_cache.clear()            # time went backwards (bag loop)
+        self.pose_cache.add(t, T)
+
+    def on_keyframes(self, msg):
+        from ..conversions import ConversionError, pose_to_matrix
+        self.kf_events_seen = True
+        with self.lock:
+            for kf in msg.keyframes:
+                t = kf.stamp.to_sec()
+                if msg.reason == msg.NEW_KEYFRAME:
+                    self.kf_pending.append((t, int(kf.id)))
+                    continue
+                cur = self.depth.filter.keyframe if self.depth is not None else None
+                if cur is None or not (cur.id == kf.id or abs(cur.stamp - t) < 1e-3):
+                    continue
+                try:  # loop closure / BA moved our keyframe: its points follow
+                    self.depth.filter.set_keyframe_pose(pose_to_matrix(kf.pose))
+                except (ConversionError, ValueError) as e:
+                    self.warn("kfpose", "depth_node: keyframe correction skipped: %s" % e)
+
+    # ------------------------------------------------------------------ worker
+    def _work(self):
+        import rospy
+        while not rospy.is_shutdown():
+            with self.cv:
+                while self.pending is None and not rospy.is_shutdown():
+                    self.cv.wait(0.2)
+                item, self.pending = self.pending, None
+            if item is None:
+                continue
+            try:
+                self.process(*item)
+            except Exception as e:  # never die on input: log and go on with the next pair
+                self.counts["skipped"] += 1
+                self.warn("error", "depth_node: frame skipped after an error: %r" % (e,), "err")
+            self.updater.update()
+
+    def _pose_at(self, stamp, frame: str) -> Optional[np.ndarray]:
+        import rospy
+        from ..conversions import transform_stamped_to_matrix
+        if self.tf_buffer is not None:
+            import tf2_ros
+            try:
+                ts = self.tf_buffer.lookup_transform(self.p["map_frame"], frame, stamp,
+                                                     rospy.Duration(self.p["tf_timeout"]))
+                return transform_stamped_to_matrix(ts)
+            except (tf2_ros.LookupException, tf2_ros.ConnectivityException,
+                    tf2_ros.ExtrapolationException, tf2_ros.TransformException) as e:
+                self.warn("tf", "depth_node: no pose %s <- %s at %.3f (%s); frame skipped"
+                          % (self.p["map_frame"], frame, stamp.to_sec(), str(e).splitlines()[0]))
+                return None
+        t = stamp.to_sec()
+        deadline = time.monotonic() + self.p["tf_timeout"]
+        while True:  # the pose of this very frame may still be on its way from the pose node
+            T = self.pose_cache.lookup(t)
+            if T is not None or time.monotonic() > deadline:
+                break
+            time.sleep(0.005)
+        if T is None:
+            self.warn("pose", "depth_node: no pose at %.3f on %s (have %d poses, latest %s); "
+                      "frame skipped" % (t, self.p["pose_source_topic"], len(self.pose_cache),
+                                         self.pose_cache.latest))
+        return T
+
+    def process(self, left, right, linfo, rinfo, t_recv):
+        import rospy
+        from ..camera import CalibrationError
+        from ..conversions import (ConversionError, arrays_to_pointcloud2, image_to_numpy,
+                                   numpy_to_image)
+        from ..depth import render_depth
+        stamp = left.header.stamp
+        t = stamp.to_sec()
+        state = self.guard.check(t)
+        if state == "backwards":
+            self.warn("back", "depth_node: time went backwards to %.3f (bag loop?); filter reset" % t)
+            with self.lock:
+                if self.depth is not None:
+                    self.depth.reset()
+                self.kf_pending = []
+            self.pose_cache.clear()
+        elif state == "duplicate":
+            self.warn("dup", "depth_node: duplicate stamp %.3f; skipped" % t)
+            self.counts["skipped"] += 1
+            return
+        key = "camera"   # one throttled line per kind of problem, so none hides another
+        try:
+            if self.fixed_camera is None and (linfo is None or rinfo is None):
+                raise ConversionError("no camera_info and no calib file")
+            self._camera_for(linfo, rinfo)
+            key = "image"
+            L = image_to_numpy(left, to_mono=True)
+            R = image_to_numpy(right, to_mono=True)
+            key = "size"
+            if L.shape != R.shape:
+                raise ConversionError("left %s and right %s images differ in size" % (L.shape, R.shape))
+        except (ConversionError, CalibrationError, ValueError) as e:
+            self.warn(key, "depth_node: input skipped: %s" % e)
+            self.counts["skipped"] += 1
+            return
+        frame = self.p["camera_frame"] or left.header.frame_id or "camera_left_optical_frame"
+        T = self._pose_at(stamp, frame)
+        if T is None:
+            self.counts["skipped"] += 1
+            return
+        with self.lock:
+            new_kf, kf_id = None, None
+            if self.kf_events_seen:
+                new_kf = False
+                due = [k for k in self.kf_pending if k[0] <= t + 1e-4]
+                if due:
+                    new_kf, kf_id = True, due[-1][1]
+                    self.kf_pending = [k for k in self.kf_pending if k[0] > t + 1e-4]
+            try:
+                out = self.depth.process(t, L, R, T, new_keyframe=new_kf, keyframe_id=kf_id)
+            except ValueError as e:
+                self.warn("depth", "depth_node: input skipped: %s" % e)
+                self.counts["skipped"] += 1
+                return
+        self.counts["processed"] += 1
+        frame_id = left.header.frame_id or frame
+        msg = arrays_to_pointcloud2({"intensity": out.intensity, "variance": out.variance,
+                                     "n_obs": out.n_obs.astype(np.uint32)},
+                                    stamp=stamp, frame_id=frame_id, xyz=out.points)
+        self.pub_points.publish(msg)
+        self.counts["published"] += 1
+        if self.pub_image is not None:
+            img = render_depth(out.points, self.depth.camera)
+            self.pub_image.publish(numpy_to_image(img, "32FC1", stamp=stamp, frame_id=frame_id))
+        self.last_points = len(out)
+        self.last_timings = out.timings
+        self.last_stats = out.stats
+        self.last_latency = (rospy.Time.now() - stamp).to_sec()
+
+    def _diagnostics(self, stat):
+        from diagnostic_msgs.msg import DiagnosticStatus
+        c = self.counts
+        dt = max(1e-6, time.monotonic() - self.t_start)
+        level = DiagnosticStatus.OK
+        text = "ok"
+        if c["processed"] == 0:
+            level, text = DiagnosticStatus.WARN, "no frame processed yet"
+        elif c["skipped"] > c["processed"]:
+            level, text = DiagnosticStatus.WARN, "most frames skipped (see the log)"
+        stat.summary(level, text)
+        stat.add("rate_hz", "%.2f" % (c["processed"] / dt))
+        stat.add("latency_s", "%.3f" % self.last_latency)
+        for k, v in c.items():
+            stat.add(k, str(v))
+        stat.add("points_last_frame", str(self.last_points))
+        for k, v in self.last_timings.items():
+            stat.add("ms_" + k, "%.1f" % v)
+        return stat
 
 
 def main():
     import rospy
+    from ..depth import DEPTH_DEFAULTS
     rospy.init_node("depth_node")
-    rospy.logwarn("depth_node: not implemented yet (issue [depth]); publishing nothing.")
+    defaults = dict(DEFAULTS)
+    defaults.update(DEPTH_DEFAULTS)
+    p = get_params(defaults)
+    try:
+        DepthNode(p)
+    except Exception as e:  # bad parameters: say which, and stay up so the launch keeps running
+        rospy.logerr("depth_node: cannot start: %s", e)
     rospy.spin()

@@ -1,0 +1,159 @@
+"""depth_node against a private master: synthetic stereo pairs + camera_info + pose in,
+/mdr/depth/points out (frame, stamp, fields); bad input skipped without killing the node."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from conftest import wait_for
+from mdr_slam import conversions as cv
+from mdr_slam.camera import StereoCamera
+
+pytestmark = pytest.mark.ros
+
+W, H, D = 160, 120, 16      # f*B = 100*0.2 = 20 -> a wall at 1.25 m
+FRAME = "camera_left_optical_frame"
+
+
+def _pair(seed=0):
+    import cv2
+    rng = np.random.default_rng(seed)
+    tex = cv2.GaussianBlur((rng.random((H, W + 2 * D + 8)) * 255).astype(np.uint8), (3, 3), 0)
+    return np.ascontiguousarray(tex[:, 4:4 + W]), np.ascontiguousarray(tex[:, 4 + D:4 + D + W])
+
+
+def _camera():
+    return StereoCamera.from_rectified(W, H, 100.0, 100.0, 79.5, 59.5, 0.2, frame_id=FRAME)
+
+
+class StereoPublisher:
+    def __init__(self, rospy, prefix):
+        from sensor_msgs.msg import CameraInfo, Image
+        self.rospy = rospy
+        self.pubs = {k: rospy.Publisher(prefix + k, t, queue_size=10) for k, t in (
+            ("left/image", Image), ("right/image", Image), ("left/info", CameraInfo),
+            ("right/info", CameraInfo))}
+        self.cam = _camera()
+
+    def connected(self):
+        return all(p.get_num_connections() > 0 for p in self.pubs.values())
+
+    def publish(self, stamp, left, right, left_enc=None):
+        cam = self.cam
+        self.pubs["left/info"].publish(cv.model_to_camera_info(cam.left, stamp, FRAME))
+        self.pubs["right/info"].publish(cv.model_to_camera_info(cam.right, stamp, FRAME))
+        lm = cv.numpy_to_image(left, stamp=stamp, frame_id=FRAME)
+        if left_enc:
+            lm.encoding = left_enc
+        self.pubs["left/image"].publish(lm)
+        self.pubs["right/image"].publish(cv.numpy_to_image(right, stamp=stamp, frame_id=FRAME))
+
+
+def _node_cmd(name, prefix, *extra):
+    return ["rosrun", "mdr_slam", "depth_node", "__name:=" + name,
+            "left/image:=%sleft/image" % prefix, "right/image:=%sright/image" % prefix,
+            "left/camera_info:=%sleft/info" % prefix, "right/camera_info:=%sright/info" % prefix,
+            "_tau:=0.05", "_stride:=1", "_elas/disp_max:=64"] + list(extra)
+
+
+def _fields(msg):
+    return [f.name for f in msg.fields]
+
+
+def test_depth_node_publishes_points_from_pose_topic_and_survives_bad_input(rospy_client,
+                                                                           start_process):
+    rospy = rospy_client
+    from geometry_msgs.msg import PoseStamped
+    from sensor_msgs.msg import PointCloud2
+    prefix = "/dn1/"
+    node = start_process(_node_cmd("depth_test1", prefix, "_use_tf:=false",
+                                   "_pose_source_topic:=/dn1/pose",
+                                   "_publish_depth_image:=true"), "depth1")
+    got, imgs = [], []
+    from sensor_msgs.msg import Image
+    sub = rospy.Subscriber("/mdr/depth/points", PointCloud2, got.append)
+    sub_img = rospy.Subscriber("/mdr/depth/image", Image, imgs.append)
+    pose_pub = rospy.Publisher("/dn1/pose", PoseStamped, queue_size=10)
+    sp = StereoPublisher(rospy, prefix)
+    assert wait_for(lambda: sp.connected() and pose_pub.get_num_connections() > 0 and
+                    sub.get_num_connections() > 0, 30), node.output()
+    left, right = _pair()
+    base = rospy.Time.now()
+    stamps = []
+    for i in range(8):
+        st = base + rospy.Duration(0.1 * i)
+        stamps.append(st)
+        pose_pub.publish(cv.matrix_to_pose_stamped(np.eye(4), st, "map"))
+        rospy.sleep(0.05)
+        sp.publish(st, left, right)
+        n = len(got)
+        wait_for(lambda: len(got) > n, 10)
+    assert len(got) >= 6, node.output()
+    msg = got[-1]
+    assert msg.header.frame_id == FRAME
+    assert msg.header.stamp in stamps
+    assert _fields(msg) == ["x", "y", "z", "intensity", "variance", "n_obs"]
+    a = cv.pointcloud2_to_arrays(msg)
+    assert len(a["z"]) > 0.3 * W * H, node.output()
+    np.testing.assert_allclose(np.median(a["z"]), 1.25, rtol=0.02)
+    assert np.all(a["n_obs"] >= 3) and np.all(a["variance"] > 0)
+    assert imgs and imgs[-1].encoding == "32FC1" and imgs[-1].header.stamp == msg.header.stamp
+
+    # bad input: unsupported encoding, left/right size mismatch, a stamp with no pose
+    n = len(got)
+    st = base + rospy.Duration(2.0)
+    pose_pub.publish(cv.matrix_to_pose_stamped(np.eye(4), st, "map"))
+    rospy.sleep(0.05)
+    sp.publish(st, left, right, left_enc="yuv422")
+    rospy.sleep(0.3)
+    st = base + rospy.Duration(2.1)
+    pose_pub.publish(cv.matrix_to_pose_stamped(np.eye(4), st, "map"))
+    rospy.sleep(0.05)
+    sp.publish(st, left, right[:100])
+    rospy.sleep(0.3)
+    sp.publish(base + rospy.Duration(5.0), left, right)    # no pose anywhere near
+    rospy.sleep(0.6)
+    assert len(got) == n, "bad input must be skipped"
+    assert node.proc.poll() is None, "depth_node died:\n" + node.output()
+    # and a good pair afterwards is processed again
+    st = base + rospy.Duration(5.1)
+    pose_pub.publish(cv.matrix_to_pose_stamped(np.eye(4), st, "map"))
+    rospy.sleep(0.05)
+    sp.publish(st, left, right)
+    assert wait_for(lambda: len(got) > n, 10), node.output()
+    assert got[-1].header.stamp == st
+    out = node.output()
+    assert "unsupported image encoding" in out and "differ in size" in out and "no pose" in out, out
+    sub.unregister()
+    sub_img.unregister()
+
+
+def test_depth_node_pose_from_tf_and_elas_only(rospy_client, start_process):
+    rospy = rospy_client
+    import tf2_ros
+    from sensor_msgs.msg import PointCloud2
+    prefix = "/dn2/"
+    node = start_process(_node_cmd("depth_test2", prefix, "_temporal:=false"), "depth2")
+    got = []
+    sub = rospy.Subscriber("/mdr/depth/points", PointCloud2, got.append)
+    sp = StereoPublisher(rospy, prefix)
+    br = tf2_ros.TransformBroadcaster()
+    assert wait_for(lambda: sp.connected() and sub.get_num_connections() > 0, 30), node.output()
+    left, right = _pair(1)
+    base = rospy.Time.now()
+    T = np.eye(4)
+    T[:3, 3] = [1.0, 2.0, 0.5]
+    for i in range(3):
+        st = base + rospy.Duration(0.1 * i)
+        br.sendTransform(cv.matrix_to_transform_stamped(T, st, "map", FRAME))
+        rospy.sleep(0.1)
+        sp.publish(st, left, right)
+        n = len(got)
+        wait_for(lambda: len(got) > n, 10)
+    assert len(got) == 3, node.output()
+    a = cv.pointcloud2_to_arrays(got[-1])
+    assert got[-1].header.frame_id == FRAME
+    assert len(a["z"]) > 0.5 * W * H and np.all(a["n_obs"] == 1)
+    np.testing.assert_allclose(np.median(a["z"]), 1.25, rtol=0.02)
+    assert node.proc.poll() is None, node.output()
+    sub.unregister()
