@@ -18,7 +18,14 @@ DEFAULTS = {
     "camera_frame": "camera_left_optical_frame",
     "base_to_camera": "",          # T_base_camera "x y z qx qy qz qw"; empty = identity
     "publish_tf": True,
+    "publish_odom_tf": True,       # False: only map -> odom (robot odometry owns odom -> base)
     "path_max_length": 100000,
+    "calib": "",                   # calibration file(s) instead of camera_info
+    "sync_queue_size": 10,
+    "sync_slop": 0.0,              # 0 = exact stamps (TimeSynchronizer)
+    "threads": True,
+    "trajectory_path": "",
+    "trajectory_format": "",
 }
 
 
@@ -46,7 +53,7 @@ class PoseRelay:
             self.static_tf.sendTransform(matrix_to_transform_stamped(
                 self.T_base_cam, rospy.Time(0), p["base_frame"], p["camera_frame"]))
 
-    def publish(self, stamp, T_map_cam: np.ndarray) -> None:
+    def publish(self, stamp, T_map_cam: np.ndarray, T_map_odom: np.ndarray = None) -> None:
         from nav_msgs.msg import Odometry
         from ..conversions import matrix_to_pose, matrix_to_pose_stamped, matrix_to_transform_stamped
         from ..geometry import inv_T, is_valid_T
@@ -64,11 +71,13 @@ class PoseRelay:
         ps = matrix_to_pose_stamped(T_map_cam, stamp, p["map_frame"])
         self.pub_pose.publish(ps)
         T_map_base = T_map_cam @ inv_T(self.T_base_cam)
+        T_map_odom = np.eye(4) if T_map_odom is None else T_map_odom
+        T_odom_base = inv_T(T_map_odom) @ T_map_base
         odom = Odometry()
-        odom.header = ps.header
+        odom.header.stamp = stamp
         odom.header.frame_id = p["odom_frame"]
         odom.child_frame_id = p["base_frame"]
-        odom.pose.pose = matrix_to_pose(T_map_base)  # map -> odom is identity for the relay
+        odom.pose.pose = matrix_to_pose(T_odom_base)   # map -> odom is identity for the relay
         self.pub_odom.publish(odom)
         self.path.header.stamp = stamp
         self.path.poses.append(ps)
@@ -76,10 +85,214 @@ class PoseRelay:
             del self.path.poses[: len(self.path.poses) - p["path_max_length"]]
         self.pub_path.publish(self.path)
         if self.tf is not None:
-            self.tf.sendTransform([
-                matrix_to_transform_stamped(np.eye(4), stamp, p["map_frame"], p["odom_frame"]),
-                matrix_to_transform_stamped(T_map_base, stamp, p["odom_frame"], p["base_frame"]),
-            ])
+            tfs = [matrix_to_transform_stamped(T_map_odom, stamp, p["map_frame"], p["odom_frame"])]
+            if p.get("publish_odom_tf", True):
+                tfs.append(matrix_to_transform_stamped(T_odom_base, stamp, p["odom_frame"],
+                                                       p["base_frame"]))
+            self.tf.sendTransform(tfs)
+
+
+_STATE_CODES = {"NOT_INITIALIZED": 0, "OK": 1, "LOST": 2, "RELOCALIZED": 3}
+_REASON_CODES = {"new_keyframe": 0, "local_ba": 1, "loop_closure": 2, "full_map": 3}
+
+
+class OrbNode:
+    """``source: orb``: stereo images (+ camera_info or ``calib``) -> mdr_slam.pose.System ->
+    PoseRelay (pose, odom, path, tf), /mdr/tracking_state, /mdr/keyframes, ~save_trajectory."""
+
+    def __init__(self, p: dict, relay: PoseRelay):
+        import message_filters
+        import rospy
+        from mdr_slam_msgs.msg import KeyFrameArray, TrackingState
+        from mdr_slam_msgs.srv import SaveTrajectory
+        from sensor_msgs.msg import CameraInfo, Image
+        from ..pose.system import DEFAULT_PARAMS
+        self.p = p
+        self.tracker_params = get_params(DEFAULT_PARAMS)   # the tracker's keys of pose.yaml
+        self.relay = relay
+        self.warn = relay.warn
+        self.system = None
+        self.camera = None
+        self.info_key = None
+        self.T_map_odom = np.eye(4)
+        self.kf_poses = {}                 # last published T_map_kf per keyframe id
+        self.last_stamp = None
+        self.lock = __import__("threading").Lock()
+        self.pub_state = rospy.Publisher("/mdr/tracking_state", TrackingState, queue_size=10)
+        self.pub_kfs = rospy.Publisher("/mdr/keyframes", KeyFrameArray, queue_size=10, latch=True)
+        self.srv = rospy.Service("~save_trajectory", SaveTrajectory, self.on_save)
+        qs = int(p["sync_queue_size"])
+        subs = [message_filters.Subscriber("left/image", Image, queue_size=qs),
+                message_filters.Subscriber("right/image", Image, queue_size=qs)]
+        if p["calib"]:
+            from ..calib import load_stereo_calibration   # written by another worker; lazy
+            self.camera = load_stereo_calibration(p["calib"])
+            rospy.loginfo("pose_node: calibration from %s (baseline %.4f m)", p["calib"],
+                          self.camera.baseline)
+        else:
+            subs += [message_filters.Subscriber("left/camera_info", CameraInfo, queue_size=qs),
+                     message_filters.Subscriber("right/camera_info", CameraInfo, queue_size=qs)]
+        if float(p["sync_slop"]) > 0:
+            self.sync = message_filters.ApproximateTimeSynchronizer(subs, qs, float(p["sync_slop"]))
+        else:
+            self.sync = message_filters.TimeSynchronizer(subs, qs)
+        self.sync.registerCallback(self.on_stereo)
+        rospy.loginfo("pose_node: ORB tracking on %s + %s", rospy.resolve_name("left/image"),
+                      rospy.resolve_name("right/image"))
+
+    # ------------------------------------------------------------------ input
+    def _camera_from_info(self, li, ri):
+        from ..camera import CalibrationError, StereoCamera
+        from ..conversions import camera_info_to_model
+        key = (tuple(li.K), tuple(li.P), tuple(li.D), tuple(ri.P), li.width, li.height)
+        if key != self.info_key:
+            try:
+                cam = StereoCamera(camera_info_to_model(li), camera_info_to_model(ri))
+            except (CalibrationError, ValueError) as e:
+                self.warn("calib", "unusable camera_info pair: %s; frame skipped" % e)
+                return None
+            if self.camera is not None and self.system is not None:
+                self.warn("calib_change", "camera_info changed: restarting the tracker")
+                self.system.shutdown()
+                self.system = None
+            self.camera, self.info_key = cam, key
+        return self.camera
+
+    def _to_mono8(self, msg):
+        from ..conversions import image_to_numpy
+        img = image_to_numpy(msg, to_mono=True)
+        if img.dtype == np.uint16:
+            img = (img >> 8).astype(np.uint8)
+        elif img.dtype != np.uint8:
+            img = np.clip(img, 0, 255).astype(np.uint8)
+        return np.ascontiguousarray(img)
+
+    def on_stereo(self, left_msg, right_msg, left_info=None, right_info=None):
+        from ..conversions import ConversionError
+        import rospy
+        with self.lock:
+            stamp = left_msg.header.stamp
+            cam = self.camera if left_info is None else self._camera_from_info(left_info, right_info)
+            if cam is None:
+                self.warn("nocalib", "no stereo calibration yet; frame skipped")
+                return
+            try:
+                left, right = self._to_mono8(left_msg), self._to_mono8(right_msg)
+            except ConversionError as e:
+                self.warn("img", "image skipped: %s" % e)
+                return
+            w, h = cam.size
+            if left.shape != (h, w) or right.shape != (h, w):
+                self.warn("size", "image sizes %s/%s differ from the calibration %dx%d; skipped"
+                          % (left.shape[::-1], right.shape[::-1], w, h))
+                return
+            t = stamp.to_sec()
+            if self.last_stamp is not None and t <= self.last_stamp:
+                if t == self.last_stamp:
+                    self.warn("dup", "duplicate stereo stamp %.3f; skipped" % t)
+                    return
+                self.warn("back", "time went backwards (bag loop?): starting a new map")
+                self._save_on_exit()
+                self.system.shutdown()
+                self.system = None
+                self.T_map_odom = np.eye(4)
+                self.kf_poses = {}
+            self.last_stamp = t
+            if self.system is None:
+                from ..pose import System
+                self.system = System(cam, self.tracker_params, threads=bool(self.p["threads"]))
+            left, right = cam.rectify(left, right)
+            try:
+                res = self.system.track(t, left, right)
+            except Exception as e:   # never die on input: log, drop this frame
+                self.warn("track", "tracking failed on frame %.3f: %r" % (t, e), level="err")
+                return
+            self.publish(stamp, res)
+
+    # ------------------------------------------------------------------ output
+    def publish(self, stamp, res) -> None:
+        from mdr_slam_msgs.msg import TrackingState
+        st = TrackingState()
+        st.header.stamp = stamp
+        st.header.frame_id = self.p["map_frame"]
+        st.state = _STATE_CODES.get(res.state, 2)
+        st.n_tracked_points = res.n_tracked
+        st.n_map_points = res.n_map_points
+        st.n_keyframes = res.n_keyframes
+        st.current_keyframe_id = res.ref_keyframe_id
+        st.n_loop_closures = res.n_loop_closures
+        st.tracking_time_ms = res.time_ms
+        self.pub_state.publish(st)
+        if res.corrections is not None:
+            reason, cid, kfs = res.corrections
+            if reason == "loop_closure" and res.ref_keyframe_id in kfs and \
+                    res.ref_keyframe_id in self.kf_poses:
+                # the jump goes into map -> odom so odom -> base_link stays continuous (REP-105)
+                from ..geometry import inv_T
+                new = kfs[res.ref_keyframe_id][1]
+                self.T_map_odom = new @ inv_T(self.kf_poses[res.ref_keyframe_id]) @ self.T_map_odom
+            self.publish_keyframes(stamp, _REASON_CODES.get(reason, 1), cid, kfs)
+        if res.is_keyframe and res.T_map_cam is not None:
+            self.publish_keyframes(stamp, 0, self.system.correction_id,
+                                   {res.keyframe_id: (res.stamp, res.T_map_cam)})
+        if res.T_map_cam is not None:
+            self.relay.publish(stamp, res.T_map_cam, self.T_map_odom)
+
+    def publish_keyframes(self, stamp, reason: int, cid: int, kfs: dict) -> None:
+        import rospy
+        from mdr_slam_msgs.msg import KeyFrame, KeyFrameArray
+        from ..conversions import matrix_to_pose
+        msg = KeyFrameArray()
+        msg.header.stamp = stamp
+        msg.header.frame_id = self.p["map_frame"]
+        msg.reason = reason
+        msg.correction_id = cid
+        for k in sorted(kfs):
+            s, T = kfs[k]
+            kf = KeyFrame()
+            kf.id = int(k)
+            kf.stamp = rospy.Time.from_sec(s)
+            kf.pose = matrix_to_pose(T)
+            msg.keyframes.append(kf)
+            self.kf_poses[int(k)] = T
+        self.pub_kfs.publish(msg)
+
+    def save_trajectory(self, path: str, fmt: str = ""):
+        import os
+        from ..io.trajectory import write_kitti_poses, write_tum
+        if self.system is None:
+            raise RuntimeError("nothing tracked yet")
+        traj = self.system.trajectory()
+        fmt = (fmt or ("kitti" if os.path.splitext(path)[1].lower() == ".kitti" else "tum")).lower()
+        if fmt not in ("tum", "kitti"):
+            raise ValueError("format must be tum or kitti, got %r" % fmt)
+        n = (write_kitti_poses if fmt == "kitti" else write_tum)(path, traj)
+        return n
+
+    def on_save(self, req):
+        from mdr_slam_msgs.srv import SaveTrajectoryResponse
+        path = req.path or self.p["trajectory_path"] or "trajectory.txt"
+        with self.lock:
+            try:
+                n = self.save_trajectory(path, req.format)
+            except Exception as e:
+                return SaveTrajectoryResponse(False, str(e), path, 0)
+        return SaveTrajectoryResponse(True, "wrote %d poses" % n, path, n)
+
+    def _save_on_exit(self) -> None:
+        import rospy
+        if self.p["trajectory_path"] and self.system is not None:
+            try:
+                n = self.save_trajectory(self.p["trajectory_path"], self.p["trajectory_format"])
+                rospy.loginfo("pose_node: wrote %d poses to %s", n, self.p["trajectory_path"])
+            except Exception as e:
+                rospy.logerr("pose_node: could not write the trajectory: %s", e)
+
+    def shutdown(self) -> None:
+        with self.lock:
+            self._save_on_exit()
+            if self.system is not None:
+                self.system.shutdown()
 
 
 def main():
@@ -101,8 +314,8 @@ def main():
         rospy.loginfo("pose_node: relaying ground truth from %s",
                       rospy.resolve_name("ground_truth_pose"))
     elif p["source"] == "orb":
-        rospy.logwarn("pose_node: ORB tracking (source:=orb) is not implemented yet; "
-                      "use pose_source:=groundtruth. Publishing nothing.")
+        node = OrbNode(p, relay)
+        rospy.on_shutdown(node.shutdown)
     else:
         rospy.logerr("pose_node: unknown ~source %r (orb or groundtruth)", p["source"])
     rospy.spin()

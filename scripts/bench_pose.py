@@ -1,0 +1,146 @@
+#!/usr/bin/env python3
+"""Benchmark of the pose node core (mdr_slam.pose.System): tracking time per frame and ATE.
+
+    python scripts/bench_pose.py [--runs 3] [--frames 60] [--kitti DIR] [--no-synthetic]
+
+* synthetic: a 752x480 ray-cast textured room (mdr_slam.pose.synthetic), orbit of 60 frames;
+* KITTI: the 1226x370 clip in /work/shared/data/kitti06_clip (51 frames, poses.txt), ATE after
+  Umeyama SE(3) alignment (ORB-SLAM3's C++ stereo tracker: 0.070 m on this clip).
+
+Each configuration runs ``--runs`` times; per-frame tracking time is TrackResult.time_ms. With
+``threads=True`` (live mode) it is the tracking thread's time only, frames are fed at the stream
+rate (20 Hz synthetic, 10 Hz KITTI) so LocalMapping works between frames as live; with
+``threads=False`` (offline runner) it includes LocalMapping. Prints median, p90, max and ATE.
+Figures depend on the machine's load: run it on an idle machine for real numbers.
+"""
+from __future__ import annotations
+
+import argparse
+import glob
+import os
+import sys
+import time
+
+import numpy as np
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.join(ROOT, "src", "mdr_slam", "src"))
+
+from mdr_slam.camera import StereoCamera  # noqa: E402
+from mdr_slam.geometry import inv_T  # noqa: E402
+from mdr_slam.io import Trajectory  # noqa: E402
+from mdr_slam.pose import System  # noqa: E402
+from mdr_slam.pose.evaluate import ate_rmse  # noqa: E402
+
+
+def synthetic(n):
+    from mdr_slam.pose.synthetic import BoxRoom, orbit_trajectory
+    cam = StereoCamera.from_rectified(752, 480, 458.0, 458.0, 376.0, 240.0, 0.11)
+    room = BoxRoom((4.0, 2.0, 4.0), seed=1)
+    poses = orbit_trajectory(n, radius=1.0, arc=2 * np.pi * n / 120.0)
+    frames = [room.render_stereo(T, cam) for T in poses]
+    stamps = 0.05 * np.arange(n)
+    gt = Trajectory.from_matrices(stamps, [inv_T(poses[0]) @ T for T in poses])
+    return cam, frames, stamps, gt, 0.05
+
+
+def kitti(d):
+    import cv2
+    P = np.loadtxt(os.path.join(d, "calib.txt")).reshape(-1, 3, 4)
+    fl = sorted(glob.glob(os.path.join(d, "image_l", "*.png")))
+    fr = sorted(glob.glob(os.path.join(d, "image_r", "*.png")))
+    frames = [(cv2.imread(a, 0), cv2.imread(b, 0)) for a, b in zip(fl, fr)]
+    h, w = frames[0][0].shape
+    cam = StereoCamera.from_rectified(w, h, P[0, 0, 0], P[0, 1, 1], P[0, 0, 2], P[0, 1, 2],
+                                      -P[1, 0, 3] / P[1, 0, 0])
+    stamps = np.loadtxt(os.path.join(d, "times.txt"))[: len(frames)]
+    from mdr_slam.io.trajectory import read_kitti_poses
+    gt = read_kitti_poses(os.path.join(d, "poses.txt"), stamps)
+    return cam, frames, stamps, gt, 0.1
+
+
+def loop_scene(per_turn=90, turns=1.25):
+    """A 480x320 camera on 1.25 turns of a 1 m circle in a 6 m room: the last quarter revisits
+    the start, so loop closing can correct the drift."""
+    from mdr_slam.pose.synthetic import BoxRoom, orbit_trajectory
+    cam = StereoCamera.from_rectified(480, 320, 300.0, 300.0, 240.0, 160.0, 0.12)
+    room = BoxRoom((3.0, 1.5, 3.0), tex_size=768, seed=3)
+    n = int(per_turn * turns)
+    poses = orbit_trajectory(n, radius=1.0, arc=2 * np.pi * n / per_turn)
+    frames = [room.render_stereo(T, cam) for T in poses]
+    stamps = 0.05 * np.arange(n)
+    gt = Trajectory.from_matrices(stamps, [inv_T(poses[0]) @ T for T in poses])
+    return cam, frames, stamps, gt, 0.05
+
+
+def report_loop(cam, frames, stamps, gt, period):
+    for lc in (False, True):
+        s = System(cam, params={"loop_closing": lc}, threads=False)
+        for t, (l, r) in zip(stamps, frames):
+            s.track(float(t), l, r)
+        s.shutdown()
+        traj = s.trajectory()
+        print("loop scene (1.25 turns)      loop_closing=%-5s frames=%d tracked=%d loops=%s "
+              "ATE %.3f m" % (lc, len(frames), len(traj),
+                              s.loop_closing.loops if s.loop_closing else "-", ate_rmse(traj, gt)))
+        sys.stdout.flush()
+
+
+def run(cam, frames, stamps, gt, period, threads, params):
+    s = System(cam, params=params, threads=threads)
+    ms, tms, states = [], [], []
+    for t, (l, r) in zip(stamps, frames):
+        t0 = time.perf_counter()
+        res = s.track(float(t), l, r)
+        ms.append(res.time_ms)
+        tms.append(res.track_ms)
+        states.append(res.state)
+        if threads:   # feed at the stream rate, as a live camera would
+            time.sleep(max(0.0, period - (time.perf_counter() - t0)))
+    s.shutdown()
+    traj = s.trajectory()
+    return np.array(ms), np.array(tms), states, ate_rmse(traj, gt), len(traj)
+
+
+def report(name, cam, frames, stamps, gt, period, runs, params):
+    for threads in (True, False):
+        all_ms, all_t, ates = [], [], []
+        for _ in range(runs):
+            ms, tms, states, ate, n = run(cam, frames, stamps, gt, period, threads, params)
+            all_ms.append(ms[1:])   # frame 0 is initialisation
+            all_t.append(tms[1:])
+            ates.append(ate)
+        ms = np.concatenate(all_ms)
+        tm = np.concatenate(all_t)
+        print("%-16s threads=%-5s %dx%d frames=%d runs=%d | tracking ms: median %.1f p90 %.1f "
+              "max %.1f | per call incl. sync mapping: median %.1f p90 %.1f | tracked %d/%d | "
+              "ATE %.3f m (runs: %s)" % (
+                  name, threads, cam.size[0], cam.size[1], len(frames), runs, np.median(tm),
+                  np.percentile(tm, 90), tm.max(), np.median(ms), np.percentile(ms, 90), n,
+                  len(frames), float(np.median(ates)), " ".join("%.3f" % a for a in ates)))
+        sys.stdout.flush()
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--frames", type=int, default=60)
+    ap.add_argument("--kitti", default=os.path.join(os.path.dirname(ROOT), "shared", "data",
+                                                   "kitti06_clip"))
+    ap.add_argument("--no-synthetic", action="store_true")
+    ap.add_argument("--no-kitti", action="store_true")
+    ap.add_argument("--loop", action="store_true", help="also the loop-closing scene (slow)")
+    args = ap.parse_args(argv)
+    print("load average at start: %.2f %.2f %.2f (2-core machine shared: figures are indicative)"
+          % os.getloadavg())
+    if not args.no_synthetic:
+        report("synthetic room", *synthetic(args.frames), args.runs, None)
+    if not args.no_kitti and os.path.isdir(args.kitti):
+        report("KITTI 06 clip", *kitti(args.kitti), args.runs, {"max_frames": 10})
+    if args.loop:
+        report_loop(*loop_scene())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,19 @@
+"""Node 1 core: ORB-SLAM2-style stereo visual SLAM (Frame, KeyFrame, MapPoint, Map, Tracking,
+LocalMapping, LoopClosing, ORBmatcher, Optimizer, KeyFrameDatabase, System).
+
+Entry point: :class:`System` (see mdr_slam.pose.system). ROS-free.
+"""
+from __future__ import annotations
+
+from .frame import Frame, compute_stereo_matches
+from .map import KeyFrame, Map, MapPoint
+from .matcher import ORBmatcher
+from .optimizer import Optimizer
+from .orb import ORBextractor
+from .system import DEFAULT_PARAMS, System, TrackResult
+from .tracking import LOST, NOT_INITIALIZED, OK, RELOCALIZED, Tracking
+from .local_mapping import LocalMapping
+
+__all__ = ["Frame", "KeyFrame", "Map", "MapPoint", "ORBmatcher", "Optimizer", "ORBextractor",
+           "System", "TrackResult", "DEFAULT_PARAMS", "Tracking", "LocalMapping",
+           "compute_stereo_matches", "NOT_INITIALIZED", "OK", "LOST", "RELOCALIZED"]

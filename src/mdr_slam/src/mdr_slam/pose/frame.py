@@ -1,0 +1,187 @@
+"""Frame: ORB features of a rectified stereo pair with a depth per matched keypoint (ORB-SLAM2 Frame).
+
+Stereo matching follows ORB-SLAM2's Frame::ComputeStereoMatches: for every left keypoint, right
+keypoints on the same row band (+-2 px times the octave scale), within the disparity range and of
+a neighbouring octave are candidates; the best Hamming distance below (TH_HIGH+TH_LOW)/2 wins, then
+an 11x11 SAD patch search over +-5 px and a parabola through the three SAD values around the minimum
+give a sub-pixel disparity; matches whose SAD exceeds 2.1x the median are dropped (repetitive
+texture). Everything is vectorized: one cv2.batchDistance matrix, masks, gathers.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+
+from .orb import TH_HIGH, TH_LOW, ORBextractor, expand_ranges, hamming
+
+__all__ = ["Frame", "compute_stereo_matches"]
+
+_POOL = None
+
+
+def _pool():
+    global _POOL
+    if _POOL is None:
+        from concurrent.futures import ThreadPoolExecutor
+        _POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ORBright")
+    return _POOL
+
+
+_W = 5   # SAD half window (11x11 patch, as ORB-SLAM2)
+_L = 5   # SAD search half range (+-5 px)
+
+
+def compute_stereo_matches(left: np.ndarray, right: np.ndarray, uv_l, oct_l, desc_l, uv_r, oct_r,
+                           desc_r, scale: np.ndarray, fx: float, baseline: float,
+                           min_depth: Optional[float] = None):
+    """Right u coordinate (N,) (-1 when unmatched) and depth (N,) (-1 when unmatched) per left kp."""
+    n = len(uv_l)
+    ur = -np.ones(n, dtype=np.float32)
+    depth = -np.ones(n, dtype=np.float32)
+    if n == 0 or len(uv_r) == 0:
+        return ur, depth
+    bf = fx * baseline
+    min_z = baseline if min_depth is None else min_depth
+    max_d = bf / min_z   # ORB-SLAM2: minZ = b, so maxD = fx
+    # candidate pairs from a row-sorted right list (the row index of ORB-SLAM2's vRowIndices)
+    order = np.argsort(uv_r[:, 1], kind="stable")
+    vr = uv_r[order, 1]
+    rmax = 2.0 * scale[min(int(oct_r.max()), len(scale) - 1)]
+    lo = np.searchsorted(vr, uv_l[:, 1] - rmax, side="left")
+    hi = np.searchsorted(vr, uv_l[:, 1] + rmax, side="right")
+    pl_, pr_ = expand_ranges(lo, hi)
+    pr_ = order[pr_]
+    du = uv_l[pl_, 0] - uv_r[pr_, 0]
+    ok = ((np.abs(uv_l[pl_, 1] - uv_r[pr_, 1]) <= 2.0 * scale[oct_r[pr_]]) & (du >= 0) &
+          (du <= max_d) & (np.abs(oct_l[pl_] - oct_r[pr_]) <= 1))
+    pl_, pr_ = pl_[ok], pr_[ok]
+    if len(pl_) == 0:
+        return ur, depth
+    dist = hamming(desc_l[pl_], desc_r[pr_])
+    # best pair per left keypoint: sort by (left, distance) and take the first of each left
+    o = np.lexsort((dist, pl_))
+    pl_, pr_, dist = pl_[o], pr_[o], dist[o]
+    first = np.r_[True, pl_[1:] != pl_[:-1]]
+    pl_, pr_, dist = pl_[first], pr_[first], dist[first]
+    sel = dist < (TH_HIGH + TH_LOW) // 2
+    il, ir = pl_[sel], pr_[sel]
+    if len(il) == 0:
+        return ur, depth
+    # --- sub-pixel refinement by SAD on the full-resolution rows (vectorized gathers)
+    h, w = left.shape[:2]
+    uL = np.round(uv_l[il, 0]).astype(int)
+    vL = np.round(uv_l[il, 1]).astype(int)
+    uR0 = np.round(uv_r[ir, 0]).astype(int)
+    inb = ((vL - _W >= 0) & (vL + _W < h) & (uL - _W >= 0) & (uL + _W < w) &
+           (uR0 - _W - _L >= 0) & (uR0 + _W + _L < w))
+    il, ir, uL, vL, uR0 = il[inb], ir[inb], uL[inb], vL[inb], uR0[inb]
+    if len(il) == 0:
+        return ur, depth
+    off = np.arange(-_W, _W + 1)
+    rows = vL[:, None, None] + off[None, :, None]                       # (M, 11, 1)
+    pl = left[rows, uL[:, None, None] + off[None, None, :]].astype(np.float32)   # (M, 11, 11)
+    pl -= left[vL, uL].astype(np.float32)[:, None, None]                # ORB-SLAM2: minus centre
+    offr = np.arange(-_W - _L, _W + _L + 1)
+    strip = right[rows, uR0[:, None, None] + offr[None, None, :]].astype(np.float32)  # (M,11,21)
+    shifts = np.arange(-_L, _L + 1)
+    sad = np.empty((len(il), len(shifts)), dtype=np.float32)
+    for j, s in enumerate(shifts):   # 11 shifts, each vectorized over all matches
+        win = strip[:, :, s + _L: s + _L + 2 * _W + 1]
+        sad[:, j] = np.abs(pl - (win - strip[:, _W, s + _L + _W][:, None, None])).sum(axis=(1, 2))
+    k = np.argmin(sad, axis=1)
+    interior = (k > 0) & (k < 2 * _L)
+    m = np.arange(len(k))
+    k1 = np.clip(k, 1, 2 * _L - 1)
+    d1, d2, d3 = sad[m, k1 - 1], sad[m, k1], sad[m, k1 + 1]
+    denom = 2.0 * (d1 + d3 - 2.0 * d2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        delta = (d1 - d3) / denom
+    good = interior & np.isfinite(delta) & (np.abs(delta) < 1.0)
+    best_sad = sad[m, k]
+    u_right = uR0 + shifts[k] + np.where(good, delta, 0.0)
+    disp = uL - u_right   # the SAD patch is centred on round(uL), so measure from there
+    good &= (disp >= 0) & (disp < max_d)
+    disp = np.where(disp <= 0, 0.01, disp)
+    il, disp, best_sad = il[good], disp[good], best_sad[good]
+    u_right = uv_l[il, 0] - disp
+    if len(il) == 0:
+        return ur, depth
+    # floor of one grey level per pixel: noise-free (synthetic) images have a zero median SAD
+    thr = max(1.5 * 1.4 * float(np.median(best_sad)), float((2 * _W + 1) ** 2))
+    keep = best_sad <= thr
+    il = il[keep]
+    ur[il] = u_right[keep]
+    depth[il] = bf / disp[keep]
+    return ur, depth
+
+
+class Frame:
+    """One stereo frame: left keypoints, descriptors, right coordinates and depths, pose, matches."""
+
+    _next_id = 0
+
+    def __init__(self, stamp: float, left: np.ndarray, right: np.ndarray, camera,
+                 extractor: ORBextractor, extractor_right: Optional[ORBextractor] = None,
+                 th_depth_factor: float = 35.0):
+        self.id = Frame._next_id
+        Frame._next_id += 1
+        self.stamp = float(stamp)
+        self.camera = camera
+        self.fx, self.fy, self.cx, self.cy = camera.fx, camera.fy, camera.cx, camera.cy
+        self.baseline = camera.baseline
+        self.bf = self.fx * self.baseline
+        self.width, self.height = camera.size
+        self.th_depth = th_depth_factor * self.baseline   # "close" points (ORB-SLAM2 mThDepth)
+        self.scale = extractor.scale
+        self.inv_level_sigma2 = extractor.inv_level_sigma2
+        self.log_scale = np.log(extractor.scale_factor)
+        self.nlevels = extractor.nlevels
+        if extractor_right is not None and extractor_right is not extractor:
+            # cv2 releases the GIL inside detect/compute: the right image is extracted in a
+            # worker thread while this one does the left (two cv2.ORB objects: not re-entrant)
+            fut = _pool().submit(extractor_right, right)
+            self.uv, self.octave, self.angle, self.desc = extractor(left)
+            uv_r, oct_r, _, desc_r = fut.result()
+        else:
+            self.uv, self.octave, self.angle, self.desc = extractor(left)
+            uv_r, oct_r, _, desc_r = extractor(right)
+        self.ur, self.depth = compute_stereo_matches(
+            left, right, self.uv, self.octave, self.desc, uv_r, oct_r, desc_r, self.scale,
+            self.fx, self.baseline)
+        self.N = len(self.uv)
+        self.mp_ids = -np.ones(self.N, dtype=np.int64)     # matched MapPoint id per keypoint
+        self.outlier = np.zeros(self.N, dtype=bool)
+        self.T_cw: Optional[np.ndarray] = None
+        self.ref_kf = None
+        self._tree = None
+
+    # --- the keypoint "grid": a k-d tree answers radius queries for all projections at once
+    @property
+    def tree(self):
+        if self._tree is None:
+            from scipy.spatial import cKDTree
+            self._tree = cKDTree(self.uv.astype(np.float64) if self.N else np.zeros((0, 2)))
+        return self._tree
+
+    def set_pose(self, T_cw: np.ndarray) -> None:
+        from .optimizer import normalize_pose
+        self.T_cw = normalize_pose(np.asarray(T_cw, dtype=float))
+
+    @property
+    def T_wc(self) -> np.ndarray:
+        from ..geometry import inv_T
+        return inv_T(self.T_cw)
+
+    def stereo_points_camera(self, idx: Optional[np.ndarray] = None) -> np.ndarray:
+        """Camera-frame 3-D points of keypoints with depth (UnprojectStereo, before the pose)."""
+        idx = np.nonzero(self.depth > 0)[0] if idx is None else idx
+        z = self.depth[idx].astype(float)
+        x = (self.uv[idx, 0] - self.cx) * z / self.fx
+        y = (self.uv[idx, 1] - self.cy) * z / self.fy
+        return np.stack([x, y, z], axis=1)
+
+    def unproject_stereo(self, idx: np.ndarray) -> np.ndarray:
+        """World points of keypoints ``idx`` (their depth must be > 0)."""
+        from ..geometry import transform_points
+        return transform_points(self.T_wc, self.stereo_points_camera(idx))

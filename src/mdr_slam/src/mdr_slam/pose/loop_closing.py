@@ -1,0 +1,326 @@
+"""LoopClosing: place recognition, geometric verification, loop correction (ORB-SLAM2 LoopClosing).
+
+Per keyframe: its BoW vector (ORBVocabulary) goes into the KeyFrameDatabase; loop candidates are
+keyframes not connected to it whose L1 score beats the lowest score of its covisible neighbours
+and that recur for ``loop_consistency`` consecutive keyframes (ORB-SLAM2's consistent groups).
+Geometric verification matches map-point descriptors between the two keyframes and fits the
+3D-3D rigid transform with RANSAC (batched Umeyama on 3-point samples; SE(3), since stereo fixes
+the scale), then projects the candidate's neighbourhood with the corrected pose for more
+matches. Correction: the current keyframe's covisible group is moved by the loop transform,
+duplicate points are fused, and an SE(3) pose graph over the essential graph (spanning tree,
+strong covisibility edges >= 100, loop edges) is optimised with GTSAM BetweenFactorPose3; every
+map point follows its reference keyframe. The corrected keyframe poses are reported (reason
+``loop_closure``) so depth and fusion re-anchor.
+"""
+from __future__ import annotations
+
+import threading
+from collections import deque
+from typing import Dict, List, Optional
+
+import numpy as np
+
+from ..geometry import inv_T
+from .matcher import ORBmatcher, _unique_by
+from .optimizer import Optimizer, normalize_pose
+from .orb import TH_LOW, hamming_matrix
+
+__all__ = ["LoopClosing", "ransac_se3"]
+
+
+def _umeyama_batch(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """(H, 4, 4) rigid transforms mapping A[h] (H, n, 3) onto B[h] (batched SVD)."""
+    ma, mb = A.mean(1, keepdims=True), B.mean(1, keepdims=True)
+    C = np.einsum("hni,hnj->hij", B - mb, A - ma)
+    U, _, Vt = np.linalg.svd(C)
+    d = np.sign(np.linalg.det(U @ Vt))
+    S = np.tile(np.eye(3), (len(A), 1, 1))
+    S[:, 2, 2] = d
+    R = U @ S @ Vt
+    T = np.tile(np.eye(4), (len(A), 1, 1))
+    T[:, :3, :3] = R
+    T[:, :3, 3] = mb[:, 0] - np.einsum("hij,hj->hi", R, ma[:, 0])
+    return T
+
+
+def ransac_se3(A: np.ndarray, B: np.ndarray, th: np.ndarray, iters: int = 300, seed: int = 0):
+    """Rigid T with B ~ T A from correspondences with outliers: (T, inlier mask) or (None, None).
+    ``th`` is the per-correspondence 3-D distance threshold."""
+    n = len(A)
+    if n < 3:
+        return None, None
+    rng = np.random.RandomState(seed)
+    idx = np.array([rng.choice(n, 3, replace=False) for _ in range(iters)])
+    Ts = _umeyama_batch(A[idx], B[idx])
+    pred = np.einsum("hij,nj->hni", Ts[:, :3, :3], A) + Ts[:, None, :3, 3]
+    err = np.linalg.norm(pred - B[None], axis=2)
+    inl = err < th[None]
+    best = int(np.argmax(inl.sum(1)))
+    mask = inl[best]
+    if mask.sum() < 3:
+        return None, None
+    for _ in range(2):   # refine on all inliers
+        T = _umeyama_batch(A[mask][None], B[mask][None])[0]
+        err = np.linalg.norm(A @ T[:3, :3].T + T[:3, 3] - B, axis=1)
+        mask = err < th
+        if mask.sum() < 3:
+            return None, None
+    return T, mask
+
+
+class LoopClosing:
+    def __init__(self, system, params: dict):
+        from .vocabulary import KeyFrameDatabase, load_vocabulary
+        self.system = system
+        self.map = system.map
+        self.p = params
+        self.voc = load_vocabulary(params.get("vocabulary") or None)
+        self.db = KeyFrameDatabase(self.voc)
+        self.matcher = ORBmatcher(check_orientation=True)
+        self.queue = deque()
+        self.cv = threading.Condition()
+        self.stop_flag = False
+        self.thread: Optional[threading.Thread] = None
+        self.corrections = []
+        self.last_loop_kf_id = -10 ** 9
+        self.consistent_groups: List[tuple] = []   # (set of kf ids, consistency count)
+        self.min_consistency = int(params.get("loop_consistency", 2))
+        self.min_inliers = 20
+        self.loops: List[tuple] = []               # accepted (current kf id, loop kf id)
+
+    # ------------------------------------------------------------------ queue / thread
+    def insert_keyframe(self, kf) -> None:
+        with self.cv:
+            self.queue.append(kf)
+            self.cv.notify()
+
+    def start(self) -> None:
+        self.thread = threading.Thread(target=self._run, name="LoopClosing", daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        while True:
+            with self.cv:
+                while not self.queue and not self.stop_flag:
+                    self.cv.wait(0.1)
+                if self.stop_flag and not self.queue:
+                    return
+                kf = self.queue.popleft()
+            self.process(kf)
+
+    def stop(self) -> None:
+        with self.cv:
+            self.stop_flag = True
+            self.cv.notify()
+        if self.thread is not None:
+            self.thread.join(60.0)
+
+    def spin_sync(self) -> None:
+        while self.queue:
+            self.process(self.queue.popleft())
+
+    # ------------------------------------------------------------------ BoW
+    def bow(self, kf):
+        if kf.bow is None:
+            kf.bow = self.voc.transform(kf.desc)
+        return kf.bow
+
+    def relocalization_candidates(self, frame, n: int):
+        """Keyframes most similar to ``frame`` by BoW (ORB-SLAM2 DetectRelocalizationCandidates)."""
+        with self.map.lock:
+            if not self.db.bows:
+                return None
+            bow = self.voc.transform(frame.desc)
+            res = self.db.query(bow, top=n)
+            return [self.map.keyframes[k] for k, _ in res
+                    if k in self.map.keyframes and not self.map.keyframes[k].bad]
+
+    # ------------------------------------------------------------------ per keyframe
+    def process(self, kf) -> None:
+        with self.map.lock:
+            if kf.bad:
+                return
+            bow = self.bow(kf)
+            cand = self.detect_loop(kf, bow)
+            if cand is not None:
+                self.try_close(kf, cand)
+            self.db.add(kf.id, bow)
+
+    def detect_loop(self, kf, bow):
+        mp = self.map
+        if kf.id < self.last_loop_kf_id + 10 or len(self.db.bows) < 5:
+            self.consistent_groups = []
+            return None
+        conn = [k for k in kf.connections if k in mp.keyframes and not mp.keyframes[k].bad]
+        scores = [bow_score_safe(bow, self.bow(mp.keyframes[k])) for k in conn]
+        min_score = min(scores) if scores else 0.0
+        # connected and very recent keyframes are not loops (ORB-SLAM2 excludes the connected)
+        exclude = set(conn) | {kf.id} | {k for k in self.db.bows if k > kf.id - 5}
+        cands = [k for k, s in self.db.query(bow, exclude=exclude, min_score=min_score, top=5)]
+        # consistency: a candidate's group (it + its connections) must overlap a group that was
+        # detected for the previous keyframes, min_consistency times in a row
+        new_groups = []
+        accepted = []
+        for c in cands:
+            ck = mp.keyframes.get(c)
+            if ck is None or ck.bad:
+                continue
+            group = {c} | set(ck.connections)
+            best = 0
+            for g, n in self.consistent_groups:
+                if group & g:
+                    best = max(best, n + 1)
+            n = max(best, 1)
+            new_groups.append((group, n))
+            if n >= self.min_consistency:
+                accepted.append(ck)
+        self.consistent_groups = new_groups
+        return accepted or None
+
+    def try_close(self, kf, cands) -> bool:
+        mp = self.map
+        for cand in cands:
+            res = self.compute_se3(kf, cand)
+            if res is None:
+                continue
+            S, cur_ids, loop_ids, new_kp, new_ids = res
+            self.correct_loop(kf, cand, S, cur_ids, loop_ids, new_kp, new_ids)
+            self.consistent_groups = []
+            return True
+        return False
+
+    def compute_se3(self, kf, cand):
+        """World correction S (T_w_w') with cand's points ~ S * kf's points, and matched ids."""
+        mp = self.map
+        a = np.nonzero(kf.mp_ids >= 0)[0]
+        a = a[~mp.mp_bad[kf.mp_ids[a]]]
+        b = np.nonzero(cand.mp_ids >= 0)[0]
+        b = b[~mp.mp_bad[cand.mp_ids[b]]]
+        if len(a) < self.min_inliers or len(b) < self.min_inliers:
+            return None
+        D = hamming_matrix(kf.desc[a], cand.desc[b])
+        part = np.partition(D, 1, axis=1) if D.shape[1] > 1 else np.concatenate([D, D + 256], 1)
+        j = np.argmin(D, axis=1)
+        ok = (part[:, 0] <= TH_LOW) & (part[:, 0] < 0.75 * part[:, 1])
+        i = np.nonzero(ok)[0]
+        j = j[ok]
+        u = _unique_by(j, part[i, 0])
+        i, j = i[u], j[u]
+        if len(i) < self.min_inliers:
+            return None
+        ca, cb = kf.mp_ids[a[i]], cand.mp_ids[b[j]]
+        A, B = mp.mp_pos[ca], mp.mp_pos[cb]
+        # distance threshold grows with depth (stereo depth error ~ z^2)
+        z = np.linalg.norm(A - kf.T_wc[:3, 3], axis=1)
+        th = 0.05 + 0.01 * z + 0.002 * z ** 2
+        S, mask = ransac_se3(A, B, th)
+        if S is None or mask.sum() < self.min_inliers:
+            return None
+        # guided search: project the candidate's neighbourhood with the corrected pose
+        local = [cand] + mp.best_covisibles(cand, 10)
+        pts = np.unique(np.concatenate([k.valid_mp_ids(mp.mp_bad) for k in local]))
+        # a temporary view of kf with the corrected pose, over its free keypoints only
+        view = _KeyFrameView(kf, kf.T_cw @ inv_T(S))
+        pts = pts[~np.isin(pts, kf.mp_ids)]
+        n, _ = self.matcher.search_local_points(view, mp, pts, th=3.0)
+        total = int(mask.sum()) + n
+        if total < 40:
+            return None
+        new_kp = np.nonzero(view.mp_ids >= 0)[0]
+        return S, ca[mask], cb[mask], new_kp, view.mp_ids[new_kp]
+
+    def correct_loop(self, kf, cand, S, cur_ids, loop_ids, new_kp, new_ids) -> None:
+        mp = self.map
+        group = [kf] + [mp.keyframes[k] for k in kf.connections
+                        if k in mp.keyframes and not mp.keyframes[k].bad]
+        old_wc = {k.id: k.T_wc for k in mp.good_keyframes()}
+        corr_wc = {k.id: S @ old_wc[k.id] for k in group}
+        # points seen by the group follow the group's correction
+        gpts = np.unique(np.concatenate([k.valid_mp_ids(mp.mp_bad) for k in group]))
+        mp.mp_pos[gpts] = mp.mp_pos[gpts] @ S[:3, :3].T + S[:3, 3]
+        for k in group:
+            k.set_pose(inv_T(corr_wc[k.id]))
+        # fuse: current-side duplicates become the loop-side points
+        valid = (cur_ids >= 0) & (loop_ids >= 0)
+        mp.replace_points(cur_ids[valid], loop_ids[valid])
+        free = (kf.mp_ids[new_kp] < 0) & ~mp.mp_bad[new_ids]   # guided-search matches
+        if np.any(free):
+            mp.add_observations(kf, new_kp[free], new_ids[free])
+        kf.loop_edges.append(cand.id)
+        cand.loop_edges.append(kf.id)
+        # new covisibility links created by the fusion are loop edges too (ORB-SLAM2
+        # LoopConnections): many edges, so the loop dominates the old chain in the pose graph
+        before = {k.id: set(k.connections) for k in group}
+        group_ids = set(before)
+        loop_links = set()
+        for k in group:
+            mp.update_connections(k)
+            for o in k.connections:
+                if o not in before[k.id] and o not in group_ids:
+                    loop_links.add((min(k.id, o), max(k.id, o)))
+        # essential graph: spanning tree and strong covisibility edges measured before the
+        # correction (relative poses inside the moved group are unchanged by S), loop edges now
+        poses = {k.id: k.T_wc for k in mp.good_keyframes()}
+        edges = []
+        for k in mp.good_keyframes():
+            par = k.parent
+            while par is not None and par.bad:
+                par = par.parent
+            if par is not None and par.id in poses and par.id != k.id:
+                edges.append((par.id, k.id, inv_T(old_wc[par.id]) @ old_wc[k.id]))
+            for o, w in k.connections.items():
+                if o > k.id and w >= 100 and o in poses:
+                    edges.append((k.id, o, inv_T(old_wc[k.id]) @ old_wc[o]))
+            for o in k.loop_edges:
+                if o > k.id and o in poses:
+                    edges.append((k.id, o, inv_T(poses[k.id]) @ poses[o]))
+        for a_, b_ in loop_links:
+            if a_ in poses and b_ in poses:
+                edges.append((a_, b_, inv_T(poses[a_]) @ poses[b_]))
+        new = Optimizer.optimize_essential_graph(poses, edges, fixed=cand.id)
+        # map points follow their reference keyframe: P' = T_new T_used^-1 P
+        owner = np.full(mp.n, -1, dtype=np.int64)
+        for k in group:   # points moved by S follow a group keyframe (ORB-SLAM2 mnCorrectedByKF)
+            if k.bad:
+                continue
+            ids = k.valid_mp_ids(mp.mp_bad)
+            ids = ids[np.isin(ids, gpts)]
+            free = owner[ids] < 0
+            owner[ids[free]] = k.id
+        for k in sorted(mp.good_keyframes(), key=lambda k: k.id):
+            ids = k.valid_mp_ids(mp.mp_bad)
+            free = owner[ids] < 0
+            owner[ids[free]] = k.id
+        alive = np.nonzero(owner >= 0)[0]
+        for kid in np.unique(owner[alive]).tolist():
+            sel = alive[owner[alive] == kid]
+            C = new[kid] @ inv_T(poses[kid])
+            mp.mp_pos[sel] = mp.mp_pos[sel] @ C[:3, :3].T + C[:3, 3]
+        for kid, T in new.items():
+            mp.keyframes[kid].set_pose(normalize_pose(inv_T(T)))
+        mp.update_normal_and_depth(alive)
+        mp.n_loop_closures += 1
+        self.last_loop_kf_id = kf.id
+        self.loops.append((kf.id, cand.id))
+        self.corrections.append(("loop_closure", {k: mp.keyframes[k].T_cw.copy() for k in new}))
+
+
+def bow_score_safe(a, b) -> float:
+    from .vocabulary import bow_score
+    return bow_score(a, b)
+
+
+class _KeyFrameView:
+    """A keyframe seen with another pose, for projection searches (free keypoints only)."""
+
+    def __init__(self, kf, T_cw):
+        for name in ("fx", "fy", "cx", "cy", "bf", "width", "height", "uv", "ur", "octave",
+                     "desc", "angle", "scale", "log_scale", "nlevels", "tree", "N"):
+            setattr(self, name, getattr(kf, name))
+        self.T_cw = T_cw
+        self.mp_ids = np.where(kf.mp_ids >= 0, -2, -1)   # occupied keypoints are not candidates
+        self.outlier = np.zeros(kf.N, dtype=bool)
+
+    @property
+    def T_wc(self):
+        return inv_T(self.T_cw)

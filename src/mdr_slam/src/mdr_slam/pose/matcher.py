@@ -1,0 +1,202 @@
+"""ORBmatcher: projection search and descriptor matching, vectorized (ORB-SLAM2 ORBmatcher).
+
+ORB-SLAM2 loops over map points and asks the frame's 64x48 cell grid for keypoints near each
+projection. Here all projections are answered at once: a k-d tree of the frame's keypoints
+(Frame.tree) and a k-d tree of the projections give every (point, keypoint) pair within the
+largest search radius (cKDTree.sparse_distance_matrix, C++), and masks apply the per-point radius,
+pyramid-level window, right-image check and "keypoint still free" test. Distances are Hamming on
+the candidate pairs only; best/second-best per point and one point per keypoint are resolved with
+sorts, not loops.
+"""
+from __future__ import annotations
+
+from typing import Optional, Tuple
+
+import numpy as np
+
+from .orb import TH_HIGH, TH_LOW, hamming, hamming_matrix
+
+__all__ = ["ORBmatcher"]
+
+HISTO_LENGTH = 30
+
+
+def _best_two(owner: np.ndarray, dist: np.ndarray, other: np.ndarray):
+    """Per owner: index (into the pair arrays) of its best pair, and its second-best distance."""
+    if len(owner) == 0:
+        z = np.zeros(0, dtype=np.int64)
+        return z, z, z
+    o = np.lexsort((dist, owner))
+    ow = owner[o]
+    first = np.r_[True, ow[1:] != ow[:-1]]
+    best = o[first]
+    # second best: the element after the first in each group, if same owner
+    pos = np.nonzero(first)[0]
+    nxt = pos + 1
+    has2 = nxt < len(o)
+    has2[has2] = ow[nxt[has2]] == ow[pos[has2]]
+    second = np.full(len(best), np.iinfo(np.int32).max, dtype=np.int64)
+    second[has2] = dist[o[nxt[has2]]]
+    second_other = np.full(len(best), -1, dtype=np.int64)
+    second_other[has2] = other[o[nxt[has2]]]
+    return best, second, second_other
+
+
+def _unique_by(key: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """Indices keeping, for each distinct ``key``, the element with the smallest ``dist``."""
+    if len(key) == 0:
+        return np.zeros(0, dtype=np.int64)
+    o = np.lexsort((dist, key))
+    k = key[o]
+    return o[np.r_[True, k[1:] != k[:-1]]]
+
+
+def rotation_consistency(angle_a: np.ndarray, angle_b: np.ndarray) -> np.ndarray:
+    """Mask of matches whose keypoint-angle change falls in the 3 most populated of 30 histogram
+    bins (ORB-SLAM2 ComputeThreeMaxima): rejects matches inconsistent with the image rotation."""
+    rot = np.mod(angle_a - angle_b, 360.0)
+    b = np.minimum((rot * HISTO_LENGTH / 360.0).astype(int), HISTO_LENGTH - 1)
+    counts = np.bincount(b, minlength=HISTO_LENGTH)
+    top = np.argsort(-counts)[:3]
+    keep_bins = [top[0]]
+    for t in top[1:]:   # ORB-SLAM2 drops the 2nd/3rd maxima when < 10% of the first
+        if counts[t] > 0.1 * counts[top[0]]:
+            keep_bins.append(t)
+    return np.isin(b, keep_bins)
+
+
+class ORBmatcher:
+    def __init__(self, nn_ratio: float = 0.6, check_orientation: bool = True):
+        self.nn_ratio = nn_ratio
+        self.check_orientation = check_orientation
+
+    def match_projections(self, frame, u, v, radius, desc, lvl_lo, lvl_hi, ur=None,
+                          th_dist: int = TH_HIGH, ratio: Optional[float] = None,
+                          angle=None) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(point index, keypoint index, distance) for projections (u, v) searched in ``frame``.
+
+        ``radius`` per point (px); keypoint octave must lie in [lvl_lo, lvl_hi]; when ``ur`` is
+        given, a keypoint with a right coordinate must also match it within the radius. Only free
+        keypoints (frame.mp_ids < 0) are candidates.
+        """
+        from scipy.spatial import cKDTree
+        P = len(u)
+        empty = (np.zeros(0, np.int64),) * 2 + (np.zeros(0, np.int32),)
+        if P == 0 or frame.N == 0:
+            return empty
+        uv = np.column_stack([u, v]).astype(np.float64)
+        rmax = float(np.max(radius))
+        S = cKDTree(uv).sparse_distance_matrix(frame.tree, rmax, output_type="ndarray")
+        if len(S) == 0:
+            return empty
+        i = S["i"].astype(np.int64)
+        j = S["j"].astype(np.int64)
+        ok = (S["v"] <= radius[i]) & (frame.mp_ids[j] == -1)
+        oc = frame.octave[j]
+        ok &= (oc >= lvl_lo[i]) & (oc <= lvl_hi[i])
+        if ur is not None:
+            has_r = frame.ur[j] >= 0
+            ok &= ~has_r | (np.abs(ur[i] - frame.ur[j]) <= radius[i])
+        i, j = i[ok], j[ok]
+        if len(i) == 0:
+            return empty
+        d = hamming(desc[i], frame.desc[j])
+        keep = d <= th_dist
+        i, j, d = i[keep], j[keep], d[keep]
+        if len(i) == 0:
+            return empty
+        best, second, second_j = _best_two(i, d, j)
+        bi, bj, bd = i[best], j[best], d[best]
+        if ratio is not None:   # ambiguous at the same level -> reject (SearchByProjection)
+            same_lvl = (second_j >= 0) & (frame.octave[np.maximum(second_j, 0)] == frame.octave[bj])
+            ok = ~(same_lvl & (bd > ratio * second))
+            bi, bj, bd = bi[ok], bj[ok], bd[ok]
+        u_ = _unique_by(bj, bd)
+        bi, bj, bd = bi[u_], bj[u_], bd[u_]
+        if angle is not None and self.check_orientation and len(bi) > 0:
+            ok = rotation_consistency(angle[bi], frame.angle[bj])
+            bi, bj, bd = bi[ok], bj[ok], bd[ok]
+        return bi, bj, bd
+
+    # ------------------------------------------------------------------ tracking searches
+    def search_by_projection_last(self, frame, last, map_, th: float) -> int:
+        """Project the last frame's map points with the predicted pose (motion model)."""
+        from ..geometry import transform_points
+        sel = np.nonzero((last.mp_ids >= 0) & ~last.outlier)[0]
+        if len(sel) == 0:
+            return 0
+        ids = last.mp_ids[sel]
+        good = ~map_.mp_bad[ids]
+        sel, ids = sel[good], ids[good]
+        Pc = transform_points(frame.T_cw, map_.mp_pos[ids])
+        z = Pc[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = frame.fx * Pc[:, 0] / z + frame.cx
+            v = frame.fy * Pc[:, 1] / z + frame.cy
+        inimg = (z > 0) & (u >= 0) & (u < frame.width) & (v >= 0) & (v < frame.height)
+        sel, ids, u, v, z = sel[inimg], ids[inimg], u[inimg], v[inimg], z[inimg]
+        oc = last.octave[sel]
+        radius = th * frame.scale[oc]
+        # ORB-SLAM2 also restricts the level by the forward/backward motion; +-1 octave suffices
+        i, j, _ = self.match_projections(frame, u, v, radius, map_.mp_desc[ids], oc - 1, oc + 1,
+                                         ur=u - frame.bf / z, angle=last.angle[sel])
+        frame.mp_ids[j] = ids[i]
+        frame.outlier[j] = False
+        return len(i)
+
+    def search_local_points(self, frame, map_, ids: np.ndarray, th: float) -> Tuple[int, np.ndarray]:
+        """SearchByProjection for local map points ``ids`` (frustum test included).
+
+        Returns (matches, ids that were in the frustum) so the caller increases their 'visible'."""
+        from ..geometry import transform_points
+        if len(ids) == 0:
+            return 0, ids
+        Twc = frame.T_wc
+        Pw = map_.mp_pos[ids]
+        Pc = transform_points(frame.T_cw, Pw)
+        z = Pc[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = frame.fx * Pc[:, 0] / z + frame.cx
+            v = frame.fy * Pc[:, 1] / z + frame.cy
+        PO = Pw - Twc[:3, 3]
+        dist = np.linalg.norm(PO, axis=1)
+        view_cos = np.einsum("ij,ij->i", PO, map_.mp_normal[ids]) / np.maximum(dist, 1e-9)
+        ok = ((z > 0) & (u >= 0) & (u < frame.width) & (v >= 0) & (v < frame.height) &
+              (dist >= 0.8 * map_.mp_min_dist[ids]) & (dist <= 1.2 * map_.mp_max_dist[ids]) &
+              (view_cos >= 0.5))
+        ids, u, v, z, dist, view_cos = ids[ok], u[ok], v[ok], z[ok], dist[ok], view_cos[ok]
+        if len(ids) == 0:
+            return 0, ids
+        lvl = map_.predict_scale(ids, dist, frame.log_scale, frame.nlevels)
+        r = np.where(view_cos > 0.998, 2.5, 4.0) * th * frame.scale[lvl]
+        i, j, _ = self.match_projections(frame, u, v, r, map_.mp_desc[ids], lvl - 1, lvl,
+                                         ur=u - frame.bf / z, ratio=0.8)
+        frame.mp_ids[j] = ids[i]
+        frame.outlier[j] = False
+        return len(i), ids
+
+    def search_by_descriptors(self, kf, frame, map_, ratio: float = 0.7,
+                              th: int = TH_LOW) -> Tuple[np.ndarray, np.ndarray]:
+        """Brute-force matching of ``kf``'s map-point keypoints against the frame's free keypoints
+        (stands in for SearchByBoW: BLAS Hamming matrix, ratio test, mutual uniqueness, rotation
+        histogram). Returns (frame keypoint indices, map point ids)."""
+        sel = np.nonzero(kf.mp_ids >= 0)[0]
+        sel = sel[~map_.mp_bad[kf.mp_ids[sel]]]
+        free = np.nonzero(frame.mp_ids < 0)[0]
+        if len(sel) == 0 or len(free) == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        D = hamming_matrix(kf.desc[sel], frame.desc[free])
+        if D.shape[1] >= 2:
+            part = np.partition(D, 1, axis=1)
+            d1, d2 = part[:, 0], part[:, 1]
+        else:
+            d1, d2 = D[:, 0], np.full(len(D), 256)
+        b = np.argmin(D, axis=1)
+        ok = (d1 <= th) & (d1 < ratio * d2)
+        ia, jb, dd = np.nonzero(ok)[0], b[ok], d1[ok]
+        u_ = _unique_by(jb, dd)
+        ia, jb = ia[u_], jb[u_]
+        if self.check_orientation and len(ia):
+            keep = rotation_consistency(kf.angle[sel[ia]], frame.angle[free[jb]])
+            ia, jb = ia[keep], jb[keep]
+        return free[jb], kf.mp_ids[sel[ia]]

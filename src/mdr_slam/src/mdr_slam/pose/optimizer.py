@@ -1,0 +1,360 @@
+"""Optimizer: pose-only optimization (numpy Gauss-Newton), local BA and pose graph (GTSAM).
+
+PoseOptimization follows ORB-SLAM2 Optimizer::PoseOptimization: stereo observations have a 3-D
+residual (u_L, v, u_R) and chi2 threshold 7.815 (95 %, 3 dof), monocular ones a 2-D residual and
+5.991; information is 1/sigma^2 of the keypoint's octave (sigma = 1.2^octave); four rounds of ten
+iterations with a Huber kernel, re-classifying inliers/outliers after each round and dropping the
+kernel in the last. It is a 6x6 problem, so a vectorized numpy Gauss-Newton (einsum normal
+equations) is faster than building a factor graph per frame.
+
+Local BA and the pose graph are GTSAM (GenericStereoFactor3D / GenericProjectionFactorCal3_S2 with
+Huber noise, BetweenFactorPose3, Levenberg-Marquardt), as the brief asks: well-kept sparse solvers.
+"""
+from __future__ import annotations
+
+from typing import Dict, List, Optional, Tuple
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ..geometry import inv_T, make_T
+
+__all__ = ["Optimizer", "bundle_adjust", "normalize_pose", "CHI2_MONO", "CHI2_STEREO", "project_residuals"]
+
+CHI2_MONO = 5.991
+CHI2_STEREO = 7.815
+
+
+def normalize_pose(T: np.ndarray) -> np.ndarray:
+    """Nearest rigid transform (SVD projection of the rotation). Pose chains (velocity, last
+    frame re-anchoring) multiply rounding errors that inv_T's R^T amplifies; projecting every
+    stored pose keeps them exact rotations."""
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        U[:, -1] *= -1
+        R = U @ Vt
+    out = np.eye(4)
+    out[:3, :3] = R
+    out[:3, 3] = T[:3, 3]
+    return out
+
+
+def project_residuals(T_cw: np.ndarray, Pw: np.ndarray, obs: np.ndarray, stereo: np.ndarray,
+                      fx, fy, cx, cy, bf):
+    """Residuals (N, 3) obs - proj (third column 0 for mono), camera points (N, 3)."""
+    Pc = Pw @ T_cw[:3, :3].T + T_cw[:3, 3]
+    z = Pc[:, 2]
+    iz = 1.0 / np.where(np.abs(z) < 1e-9, 1e-9, z)
+    u = fx * Pc[:, 0] * iz + cx
+    v = fy * Pc[:, 1] * iz + cy
+    ur = u - bf * iz
+    e = np.stack([obs[:, 0] - u, obs[:, 1] - v, np.where(stereo, obs[:, 2] - ur, 0.0)], axis=1)
+    return e, Pc
+
+
+def _pose_point_jacobians(Pc, R, stereo, fx, fy, bf):
+    """d(residual)/d(pose xi) (n,3,6) and d(residual)/d(point) (n,3,3); residual = obs - proj."""
+    X, Y, Z = Pc[:, 0], Pc[:, 1], Pc[:, 2]
+    iz = 1.0 / np.where(np.abs(Z) < 1e-9, 1e-9, Z)
+    iz2 = iz * iz
+    n = len(Pc)
+    Jp = np.zeros((n, 3, 3))
+    Jp[:, 0, 0] = fx * iz
+    Jp[:, 0, 2] = -fx * X * iz2
+    Jp[:, 1, 1] = fy * iz
+    Jp[:, 1, 2] = -fy * Y * iz2
+    Jp[:, 2, 0] = fx * iz
+    Jp[:, 2, 2] = -(fx * X - bf) * iz2
+    Jp[~stereo, 2, :] = 0.0
+    Jx = np.zeros((n, 3, 6))
+    Jx[:, :, :3] = np.eye(3)
+    Jx[:, 0, 4], Jx[:, 0, 5] = Z, -Y
+    Jx[:, 1, 3], Jx[:, 1, 5] = -Z, X
+    Jx[:, 2, 3], Jx[:, 2, 4] = Y, -X
+    Jc = -(Jp @ Jx)
+    Jl = -(Jp @ R)
+    return Jc, Jl
+
+
+def bundle_adjust(Ts: np.ndarray, fixed: np.ndarray, P: np.ndarray, cam_idx: np.ndarray,
+                  pt_idx: np.ndarray, obs: np.ndarray, stereo: np.ndarray, info: np.ndarray,
+                  intr, iterations: int = 10, lm_lambda: float = 1e-3, abort=None):
+    """Robust (Huber) Levenberg-Marquardt bundle adjustment with the Schur complement.
+
+    Poses ``Ts`` (C, 4, 4) T_cw (``fixed`` ones held), points ``P`` (M, 3); observations (u, v, uR)
+    with stereo flag and information 1/sigma^2. The point blocks are eliminated (scipy.sparse
+    block products), leaving a dense 6C x 6C camera system: the standard BA structure (as g2o in
+    ORB-SLAM2), vectorized so a local BA with ~10k observations takes tens of milliseconds.
+    Half the iterations run, outliers (chi2 above 95 %) are dropped, the rest run again.
+    """
+    import scipy.sparse as sp
+    fx, fy, cx, cy, bf = intr
+    Ts = Ts.copy()
+    P = P.copy()
+    C, M = len(Ts), len(P)
+    var = np.nonzero(~fixed)[0]
+    cvar = np.full(C, -1, dtype=np.int64)
+    cvar[var] = np.arange(len(var))
+    nv = len(var)
+    chi2_th = np.where(stereo, CHI2_STEREO, CHI2_MONO)
+    delta = np.sqrt(chi2_th)
+    active = np.ones(len(obs), dtype=bool)
+
+    def residuals(Ts_, P_):
+        R = Ts_[cam_idx, :3, :3]
+        Pc = (R @ P_[pt_idx][:, :, None])[:, :, 0] + Ts_[cam_idx, :3, 3]
+        z = Pc[:, 2]
+        iz = 1.0 / np.where(np.abs(z) < 1e-9, 1e-9, z)
+        u = fx * Pc[:, 0] * iz + cx
+        v = fy * Pc[:, 1] * iz + cy
+        e = np.stack([obs[:, 0] - u, obs[:, 1] - v,
+                      np.where(stereo, obs[:, 2] - (u - bf * iz), 0.0)], axis=1)
+        return e, Pc, R
+
+    def robust_cost(e):
+        chi2 = info * np.einsum("ij,ij->i", e, e)
+        s = np.sqrt(chi2)
+        rho = np.where(s <= delta, chi2, 2.0 * delta * s - delta * delta)
+        return float(np.sum(rho[active])), chi2
+
+    lam = lm_lambda
+    half = max(1, iterations // 2)
+
+    for it in range(iterations):
+        if abort is not None and it > 0 and abort():
+            break   # a new keyframe is waiting (ORB-SLAM2 mbAbortBA): keep the steps taken so far
+        if it == half:   # ORB-SLAM2: optimise, drop outliers, optimise again
+            e, Pc, _ = residuals(Ts, P)
+            _, chi2 = robust_cost(e)
+            active &= (chi2 <= chi2_th) & (Pc[:, 2] > 0)
+        e, Pc, R = residuals(Ts, P)
+        cost, chi2 = robust_cost(e)
+        s = np.sqrt(np.maximum(chi2, 1e-12))
+        w = info * np.where(s > delta, delta / s, 1.0) * active
+        Jc, Jl = _pose_point_jacobians(Pc, R, stereo, fx, fy, bf)
+        # point blocks
+        Hpp = np.zeros((M, 3, 3))
+        JlT = Jl.transpose(0, 2, 1) * w[:, None, None]
+        np.add.at(Hpp, pt_idx, JlT @ Jl)
+        bp = np.zeros((M, 3))
+        np.add.at(bp, pt_idx, (JlT @ e[:, :, None])[:, :, 0])
+        ov = cvar[cam_idx] >= 0
+        oc = cvar[cam_idx[ov]]
+        Hcc = np.zeros((nv, 6, 6))
+        JcT = Jc[ov].transpose(0, 2, 1) * w[ov][:, None, None]
+        np.add.at(Hcc, oc, JcT @ Jc[ov])
+        bc = np.zeros((nv, 6))
+        np.add.at(bc, oc, (JcT @ e[ov][:, :, None])[:, :, 0])
+        Wb = JcT @ Jl[ov]                                              # (n, 6, 3)
+        improved = False
+        for _ in range(6):
+            Hpp_d = Hpp + (lam * np.einsum("nii->ni", Hpp) + 1e-9)[:, :, None] * np.eye(3)
+            Vinv = np.linalg.inv(Hpp_d)
+            if nv:
+                Hcc_d = Hcc + (lam * np.einsum("nii->ni", Hcc) + 1e-9)[:, :, None] * np.eye(6)
+                rows = (6 * oc[:, None, None] + np.arange(6)[None, :, None]) * np.ones((1, 1, 3), int)
+                cols = (3 * pt_idx[ov][:, None, None] + np.arange(3)[None, None, :]) * np.ones((1, 6, 1), int)
+                W = sp.csr_matrix((Wb.ravel(), (rows.ravel(), cols.ravel())), shape=(6 * nv, 3 * M))
+                br = (3 * np.arange(M)[:, None, None] + np.arange(3)[None, :, None]) * np.ones((1, 1, 3), int)
+                bcl = (3 * np.arange(M)[:, None, None] + np.arange(3)[None, None, :]) * np.ones((1, 3, 1), int)
+                Vi = sp.csr_matrix((Vinv.ravel(), (br.ravel(), bcl.ravel())), shape=(3 * M, 3 * M))
+                WV = W @ Vi
+                S = -(WV @ W.T).toarray()
+                for c in range(nv):   # 6x6 diagonal blocks (a loop over cameras, not points)
+                    S[6 * c:6 * c + 6, 6 * c:6 * c + 6] += Hcc_d[c]
+                rhs = -bc.ravel() + WV @ bp.ravel()
+                try:
+                    dc = np.linalg.solve(S, rhs).reshape(nv, 6)
+                except np.linalg.LinAlgError:
+                    lam *= 10
+                    continue
+                dp = -(Vinv @ (bp + (W.T @ dc.ravel()).reshape(M, 3))[:, :, None])[:, :, 0]
+            else:
+                dc = np.zeros((0, 6))
+                dp = -(Vinv @ bp[:, :, None])[:, :, 0]
+            Ts_try = Ts.copy()
+            for c in range(nv):
+                d = dc[c]
+                Ts_try[var[c]] = make_T(Rotation.from_rotvec(d[3:]).as_matrix(), d[:3]) @ Ts[var[c]]
+            P_try = P + dp
+            e2, _, _ = residuals(Ts_try, P_try)
+            cost2, _ = robust_cost(e2)
+            if cost2 < cost:
+                Ts, P = Ts_try, P_try
+                lam = max(lam / 3.0, 1e-7)
+                improved = True
+                break
+            lam *= 4.0
+        if not improved:
+            break
+    return Ts, P
+
+
+class Optimizer:
+    """Static-style collection of the optimizations (ORB-SLAM2's Optimizer class)."""
+
+    @staticmethod
+    def pose_optimization(frame, map_, rounds: int = 4, iters: int = 10) -> int:
+        """Refine ``frame.T_cw`` from its matched map points; sets ``frame.outlier``; returns the
+        number of inliers."""
+        idx = np.nonzero(frame.mp_ids >= 0)[0]
+        ids = frame.mp_ids[idx]
+        good = ~map_.mp_bad[ids]
+        idx, ids = idx[good], ids[good]
+        frame.outlier[:] = False
+        if len(idx) < 3:
+            return 0
+        Pw = map_.mp_pos[ids]
+        stereo = frame.ur[idx] >= 0
+        obs = np.column_stack([frame.uv[idx], np.where(stereo, frame.ur[idx], 0.0)]).astype(float)
+        info = frame.inv_level_sigma2[frame.octave[idx]]
+        chi2_th = np.where(stereo, CHI2_STEREO, CHI2_MONO)
+        delta = np.sqrt(chi2_th)
+        T = frame.T_cw.copy()
+        inlier = np.ones(len(idx), dtype=bool)
+        fx, fy, cx, cy, bf = frame.fx, frame.fy, frame.cx, frame.cy, frame.bf
+        for rnd in range(rounds):
+            for _ in range(iters):
+                e, Pc = project_residuals(T, Pw, obs, stereo, fx, fy, cx, cy, bf)
+                w = info * inlier
+                chi2 = info * np.einsum("ij,ij->i", e, e)
+                if rnd < rounds - 1:   # Huber weights: sqrt(chi2) > delta -> delta / sqrt(chi2)
+                    s = np.sqrt(np.maximum(chi2, 1e-12))
+                    w = w * np.where(s > delta, delta / s, 1.0)
+                X, Y, Z = Pc[:, 0], Pc[:, 1], Pc[:, 2]
+                iz = 1.0 / np.where(np.abs(Z) < 1e-9, 1e-9, Z)
+                iz2 = iz * iz
+                # d(proj)/d(Pc)
+                Jp = np.zeros((len(idx), 3, 3))
+                Jp[:, 0, 0] = fx * iz
+                Jp[:, 0, 2] = -fx * X * iz2
+                Jp[:, 1, 1] = fy * iz
+                Jp[:, 1, 2] = -fy * Y * iz2
+                Jp[:, 2, 0] = fx * iz
+                Jp[:, 2, 2] = -(fx * X - bf) * iz2
+                Jp[~stereo, 2, :] = 0.0
+                # d(Pc)/d(xi), xi = [rho (translation), phi (rotation)], Pc' = exp(xi) Pc
+                Jx = np.zeros((len(idx), 3, 6))
+                Jx[:, :, :3] = np.eye(3)
+                Jx[:, 0, 4], Jx[:, 0, 5] = Z, -Y
+                Jx[:, 1, 3], Jx[:, 1, 5] = -Z, X
+                Jx[:, 2, 3], Jx[:, 2, 4] = Y, -X
+                J = -(Jp @ Jx)                                # residual = obs - proj
+                Jw = J * w[:, None, None]
+                H = np.tensordot(Jw, J, axes=([0, 1], [0, 1]))
+                g = np.tensordot(Jw, e, axes=([0, 1], [0, 1]))
+                try:
+                    dx = -np.linalg.solve(H + 1e-9 * np.eye(6), g)
+                except np.linalg.LinAlgError:
+                    break
+                dT = make_T(Rotation.from_rotvec(dx[3:]).as_matrix(), dx[:3])
+                T = dT @ T
+                if np.linalg.norm(dx) < 1e-7:
+                    break
+            e, Pc = project_residuals(T, Pw, obs, stereo, fx, fy, cx, cy, bf)
+            chi2 = info * np.einsum("ij,ij->i", e, e)
+            inlier = (chi2 <= chi2_th) & (Pc[:, 2] > 0)
+            if np.count_nonzero(inlier) < 10:
+                break
+        frame.T_cw = normalize_pose(T)
+        frame.outlier[idx] = ~inlier
+        return int(np.count_nonzero(inlier))
+
+    # ------------------------------------------------------------------ local bundle adjustment
+    @staticmethod
+    def local_bundle_adjustment(kf, map_, n_covisible: int = 10, iterations: int = 10,
+                                abort=None) -> Tuple[List[int], int]:
+        """ORB-SLAM2 LocalBundleAdjustment: optimise ``kf`` and its covisible keyframes and every
+        point they see; keyframes that see those points but are not local stay fixed. Observations
+        with chi2 above threshold after optimization are erased. Returns (moved kf ids, outliers).
+        """
+        with map_.lock:
+            local = [kf] + map_.best_covisibles(kf, n_covisible)
+            local = [k for k in local if not k.bad]
+            local_ids = set(k.id for k in local)
+            pts = np.unique(np.concatenate([k.valid_mp_ids(map_.mp_bad) for k in local]))
+            if len(pts) == 0:
+                return [], 0
+            mark = np.zeros(map_.n, dtype=bool)
+            mark[pts] = True
+            fixed = [k for k in map_.good_keyframes() if k.id not in local_ids and
+                     np.any(mark[k.mp_ids[k.mp_ids >= 0]])]
+            fixed = fixed[:20]   # enough anchors; ORB-SLAM2 keeps all, but cost grows
+            if min(k.id for k in local) == 0 or not fixed:
+                first = min(local, key=lambda k: k.id)
+                fixed_ids = {first.id}
+            else:
+                fixed_ids = set()
+            kfs = local + fixed
+            fixed_ids |= set(k.id for k in fixed)
+            pos = map_.mp_pos[pts].copy()
+            obs_list = []
+            for k in kfs:
+                sel = np.nonzero(k.mp_ids >= 0)[0]
+                sel = sel[mark[k.mp_ids[sel]]]
+                obs_list.append((k, sel, k.mp_ids[sel]))
+        C_ids = [k.id for k in kfs]
+        Ts = np.array([k.T_cw for k in kfs])
+        fixed_mask = np.array([k.id in fixed_ids for k in kfs])
+        lookup = np.full(map_.n, -1, dtype=np.int64)
+        lookup[pts] = np.arange(len(pts))
+        cam_idx = np.concatenate([np.full(len(sel), c) for c, (k, sel, m) in enumerate(obs_list)])
+        pt_idx = lookup[np.concatenate([m for _, _, m in obs_list])]
+        uv = np.concatenate([k.uv[sel] for k, sel, _ in obs_list]).astype(float)
+        urr = np.concatenate([k.ur[sel] for k, sel, _ in obs_list]).astype(float)
+        stereo = urr >= 0
+        obs = np.column_stack([uv, np.where(stereo, urr, 0.0)])
+        info = np.concatenate([k.inv_level_sigma2[k.octave[sel]] for k, sel, _ in obs_list])
+        K0 = kf
+        Ts_new, pos_new = bundle_adjust(Ts, fixed_mask, pos, cam_idx, pt_idx, obs, stereo, info,
+                                        (K0.fx, K0.fy, K0.cx, K0.cy, K0.bf), iterations,
+                                        abort=abort)
+        new_pos = pos_new
+        new_T = {k.id: inv_T(Ts_new[c]) for c, k in enumerate(kfs)
+                 if not fixed_mask[c] and k in local}
+        n_out = 0
+        with map_.lock:
+            for k in local:
+                if k.id in new_T and not k.bad:
+                    k.set_pose(normalize_pose(inv_T(new_T[k.id])))
+            alive = ~map_.mp_bad[pts]
+            map_.mp_pos[pts[alive]] = new_pos[alive]
+            # erase observations that are outliers after the optimization (chi2 test)
+            for k, sel, mids in obs_list:
+                if k.bad or len(sel) == 0:
+                    continue
+                stereo = k.ur[sel] >= 0
+                obs = np.column_stack([k.uv[sel], np.where(stereo, k.ur[sel], 0.0)])
+                e, Pc = project_residuals(k.T_cw, map_.mp_pos[mids], obs, stereo, k.fx, k.fy,
+                                          k.cx, k.cy, k.bf)
+                chi2 = k.inv_level_sigma2[k.octave[sel]] * np.einsum("ij,ij->i", e, e)
+                bad = (chi2 > np.where(stereo, CHI2_STEREO, CHI2_MONO)) | (Pc[:, 2] <= 0)
+                bad &= k.mp_ids[sel] == mids
+                if np.any(bad):
+                    n_out += int(np.count_nonzero(bad))
+                    map_.erase_observations(k, sel[bad])
+            map_.update_normal_and_depth(pts[~map_.mp_bad[pts]])
+        return sorted(new_T), n_out
+
+    # ------------------------------------------------------------------ essential graph
+    @staticmethod
+    def optimize_essential_graph(poses_wc: Dict[int, np.ndarray], edges: List[Tuple[int, int, np.ndarray]],
+                                 fixed: int, iterations: int = 20) -> Dict[int, np.ndarray]:
+        """SE(3) pose graph: ``edges`` (i, j, T_i_j measured) as BetweenFactorPose3 over keyframe
+        poses T_w_c (stereo: scale is observable, so SE(3) instead of ORB-SLAM's Sim(3)).
+        Returns optimised {kf_id: T_w_c}."""
+        import gtsam
+        from gtsam.symbol_shorthand import X
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        for k, T in poses_wc.items():
+            values.insert(X(k), gtsam.Pose3(T))
+        graph.add(gtsam.NonlinearEqualityPose3(X(fixed), gtsam.Pose3(poses_wc[fixed])))
+        noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([0.01, 0.01, 0.01, 0.02, 0.02, 0.02]))
+        for i, j, Tij in edges:
+            graph.add(gtsam.BetweenFactorPose3(X(i), X(j), gtsam.Pose3(Tij), noise))
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(iterations)
+        result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+        return {k: result.atPose3(X(k)).matrix() for k in poses_wc}

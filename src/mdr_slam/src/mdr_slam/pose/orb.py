@@ -1,0 +1,102 @@
+"""ORB features spread over the image, and vectorized Hamming distances (ORBextractor role).
+
+ORB-SLAM2 detects FAST per grid cell and keeps the strongest corners of an octree so features cover
+the whole image; here cv2.ORB detects 2x the budget over its scale pyramid and a vectorized bucket
+selection keeps the strongest ``nfeatures / cells`` per cell (same goal: tracking needs features
+everywhere, not only on the most textured object). Descriptors are 32-byte rBRIEF as in ORB-SLAM2.
+"""
+from __future__ import annotations
+
+from typing import Tuple
+
+import numpy as np
+
+__all__ = ["ORBextractor", "hamming", "hamming_matrix", "expand_ranges", "TH_HIGH", "TH_LOW"]
+
+TH_HIGH = 100   # ORBmatcher::TH_HIGH: largest Hamming distance accepted for projection search
+TH_LOW = 50     # ORBmatcher::TH_LOW: stricter bound for descriptor-only (BoW-like) matching
+
+_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], dtype=np.uint8)
+
+
+def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise Hamming distance of two (N, 32) uint8 descriptor arrays (XOR + popcount table)."""
+    return _POPCOUNT[np.bitwise_xor(a, b)].sum(axis=-1, dtype=np.int32)
+
+
+def hamming_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(N, M) Hamming distances as a BLAS product of unpacked bits: |a| + |b| - 2 a.b.
+
+    (cv2.batchDistance's Python binding rejects K=0 in OpenCV 4.10, so no full matrix from it.)
+    Meant for small sets (keyframe vs keyframe); frame-to-frame searches use candidate pairs.
+    """
+    if len(a) == 0 or len(b) == 0:
+        return np.zeros((len(a), len(b)), dtype=np.int32)
+    ua = np.unpackbits(a, axis=1).astype(np.float32)
+    ub = np.unpackbits(b, axis=1).astype(np.float32)
+    D = ua.sum(1)[:, None] + ub.sum(1)[None, :] - 2.0 * (ua @ ub.T)
+    return np.rint(D).astype(np.int32)
+
+
+def expand_ranges(lo: np.ndarray, hi: np.ndarray):
+    """(owner, index) pairs for the half-open ranges [lo[i], hi[i]) without a Python loop."""
+    n = np.maximum(np.asarray(hi) - np.asarray(lo), 0)
+    owner = np.repeat(np.arange(len(n)), n)
+    start = np.repeat(np.asarray(lo) - np.concatenate([[0], np.cumsum(n)[:-1]]), n)
+    return owner, start + np.arange(n.sum())
+
+
+class ORBextractor:
+    """cv2.ORB with a scale pyramid plus grid bucketing; exposes ORB-SLAM2's per-level tables."""
+
+    def __init__(self, nfeatures: int = 1500, scale_factor: float = 1.2, nlevels: int = 8,
+                 fast_threshold: int = 12, grid: Tuple[int, int] = (12, 8), edge: int = 19):
+        import cv2
+        self.nfeatures = int(nfeatures)
+        self.scale_factor = float(scale_factor)
+        self.nlevels = int(nlevels)
+        self.grid = grid
+        self.orb = cv2.ORB_create(nfeatures=2 * self.nfeatures, scaleFactor=self.scale_factor,
+                                  nlevels=self.nlevels, edgeThreshold=edge, patchSize=31,
+                                  fastThreshold=int(fast_threshold))
+        self.scale = self.scale_factor ** np.arange(self.nlevels)          # mvScaleFactor
+        self.level_sigma2 = self.scale ** 2                                 # mvLevelSigma2
+        self.inv_level_sigma2 = 1.0 / self.level_sigma2                     # mvInvLevelSigma2
+
+    def __call__(self, image: np.ndarray):
+        """(uv (N, 2) float32, octave (N,) int, angle (N,) float32, descriptors (N, 32) uint8)."""
+        kps = self.orb.detect(image, None)
+        if not kps:
+            return (np.zeros((0, 2), np.float32), np.zeros(0, int), np.zeros(0, np.float32),
+                    np.zeros((0, 32), np.uint8))
+        h, w = image.shape[:2]
+        uv = np.array([k.pt for k in kps], dtype=np.float32)
+        resp = np.array([k.response for k in kps], dtype=np.float32)
+        gx, gy = self.grid
+        cell = (np.minimum((uv[:, 0] * gx / w).astype(int), gx - 1) * gy +
+                np.minimum((uv[:, 1] * gy / h).astype(int), gy - 1))
+        # rank within cell by response (lexsort: last key primary), keep the best per cell
+        order = np.lexsort((-resp, cell))
+        c_sorted = cell[order]
+        first = np.searchsorted(c_sorted, c_sorted, side="left")
+        rank = np.arange(len(order)) - first
+        per_cell = max(2, int(np.ceil(self.nfeatures / float(gx * gy))))
+        keep = order[rank < per_cell]
+        if len(keep) < self.nfeatures:   # textureless cells: refill with the strongest of the rest
+            rest = np.setdiff1d(np.arange(len(kps)), keep)
+            rest = rest[np.argsort(-resp[rest])][: self.nfeatures - len(keep)]
+            keep = np.concatenate([keep, rest])
+        keep = keep[np.argsort(-resp[keep])][: self.nfeatures]
+        kps = [kps[i] for i in keep]
+        kps, desc = self.orb.compute(image, kps)
+        if desc is None or not kps:
+            return (np.zeros((0, 2), np.float32), np.zeros(0, int), np.zeros(0, np.float32),
+                    np.zeros((0, 32), np.uint8))
+        uv = np.array([k.pt for k in kps], dtype=np.float32).reshape(-1, 2)
+        octave = np.array([k.octave for k in kps], dtype=int)
+        # cv2.ORB reports level coordinates times the scale; with cv2.resize's pixel-centre
+        # convention the full-resolution position is x*s + (s-1)/2. Without this the offset grows
+        # with the octave, and in forward motion (points climbing octaves) it reads as drift.
+        uv += (0.5 * (self.scale[octave] - 1.0)).astype(np.float32)[:, None]
+        angle = np.array([k.angle for k in kps], dtype=np.float32)
+        return uv, octave, angle, desc

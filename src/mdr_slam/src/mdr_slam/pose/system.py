@@ -1,0 +1,238 @@
+"""System: the stereo SLAM entry point (ORB-SLAM2 System) used by pose_node and `mdr run`.
+
+    sys = System(camera, params=None, threads=True)
+    res = sys.track(stamp, left_rect, right_rect)     # -> TrackResult
+    traj = sys.trajectory()                            # mdr_slam.io.Trajectory (T_map_cam)
+    sys.shutdown()
+
+``threads=True`` runs LocalMapping (and LoopClosing) in background threads so tracking is not
+stalled by bundle adjustment; ``threads=False`` runs them synchronously inside ``track`` after the
+frame is tracked, which makes results deterministic (the offline runner).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Dict, List, Optional, Tuple
+
+import numpy as np
+
+from ..geometry import inv_T
+from .frame import Frame
+from .local_mapping import LocalMapping
+from .map import Map
+from .orb import ORBextractor
+from .tracking import LOST, NOT_INITIALIZED, OK, RELOCALIZED, Tracking
+
+__all__ = ["System", "TrackResult", "DEFAULT_PARAMS"]
+
+DEFAULT_PARAMS = {
+    "n_features": 1500,          # ORB features per image (ORB-SLAM2 EuRoC/KITTI: 1200-2000)
+    "scale_factor": 1.2,
+    "n_levels": 8,
+    "fast_threshold": 12,
+    "th_depth": 35.0,            # close/far threshold in baselines (ORB-SLAM2 ThDepth)
+    "min_init_points": 100,      # stereo points needed to initialise (ORB-SLAM2: 500)
+    "max_frames": 20,            # keyframe at least every max_frames frames (ORB-SLAM2: fps)
+    "min_frames": 0,
+    "th_ref_ratio": 0.75,
+    "min_close_points": 100,
+    "max_local_keyframes": 60,
+    "reset_if_lost_below_kfs": 3,
+    "local_ba": True,
+    "ba_covisible": 10,
+    "ba_iterations": 8,
+    "triangulation_neighbours": 10,
+    "loop_closing": True,
+    "vocabulary": "",            # npz path; empty = the packaged/built-in vocabulary
+    "loop_consistency": 2,       # consecutive keyframes a loop candidate must recur (ORB-SLAM2: 3)
+    "reloc_candidates": 10,
+    "backpressure_inliers": 80,  # threads: wait for LocalMapping when tracking gets this weak
+}
+
+_REASONS = {"local_ba": 1, "loop_closure": 2}
+
+# keys of config/pose.yaml that belong to the ROS node, not the tracker (System ignores them, so
+# the runner can pass the whole file)
+NODE_KEYS = {"source", "map_frame", "odom_frame", "base_frame", "camera_frame", "base_to_camera",
+             "publish_tf", "publish_odom_tf", "path_max_length", "calib", "trajectory_path",
+             "trajectory_format", "sync_queue_size", "sync_slop", "threads"}
+
+
+@dataclass
+class TrackResult:
+    stamp: float
+    state: str                                 # NOT_INITIALIZED, OK, LOST, RELOCALIZED
+    T_map_cam: Optional[np.ndarray]            # 4x4, None unless OK/RELOCALIZED
+    n_tracked: int
+    is_keyframe: bool
+    keyframe_id: int                           # new keyframe id, or -1
+    corrections: Optional[Tuple[str, int, Dict[int, Tuple[float, np.ndarray]]]]
+    time_ms: float
+    ref_keyframe_id: int = -1
+    n_map_points: int = 0
+    n_keyframes: int = 0
+    n_loop_closures: int = 0
+    track_ms: float = 0.0                      # tracking alone (time_ms adds sync-mode mapping)
+
+
+class System:
+    def __init__(self, camera, params: Optional[dict] = None, threads: bool = True):
+        p = dict(DEFAULT_PARAMS)
+        if params:
+            params = {k: v for k, v in params.items() if k not in NODE_KEYS}
+            unknown = set(params) - set(p)
+            if unknown:
+                raise ValueError("unknown pose parameters: %s" % sorted(unknown))
+            p.update(params)
+        self.p = p
+        self.camera = camera
+        self.threads = bool(threads)
+        self.extractor = ORBextractor(p["n_features"], p["scale_factor"], p["n_levels"],
+                                      p["fast_threshold"])
+        self.extractor_right = ORBextractor(p["n_features"], p["scale_factor"], p["n_levels"],
+                                            p["fast_threshold"])
+        self.request_reset = False
+        self.correction_id = 0
+        self._build()
+
+    def _build(self) -> None:
+        self.map = Map()
+        self.local_mapping = LocalMapping(self, self.p)
+        self.loop_closing = None
+        if self.p["loop_closing"]:
+            try:
+                from .loop_closing import LoopClosing
+            except ImportError:   # loop closing module not available: tracking + local mapping
+                LoopClosing = None
+            if LoopClosing is not None:
+                self.loop_closing = LoopClosing(self, self.p)
+        self.tracking = Tracking(self, self.p)
+        if self.threads:
+            self.local_mapping.start()
+            if self.loop_closing is not None:
+                self.loop_closing.start()
+        self._old_records: List[tuple] = []
+
+    # ------------------------------------------------------------------ hooks
+    def loop_closing_insert(self, kf) -> None:
+        if self.loop_closing is not None:
+            self.loop_closing.insert_keyframe(kf)
+
+    def relocalization_candidates(self, frame) -> list:
+        if self.loop_closing is not None:
+            c = self.loop_closing.relocalization_candidates(frame, self.p["reloc_candidates"])
+            if c is not None:
+                return c
+        kfs = self.map.good_keyframes()
+        return sorted(kfs, key=lambda k: -k.id)[: self.p["reloc_candidates"]]
+
+    # ------------------------------------------------------------------ API
+    def track(self, stamp: float, left_rect: np.ndarray, right_rect: np.ndarray) -> TrackResult:
+        t0 = time.perf_counter()
+        if self.request_reset:
+            self.reset()
+        if left_rect.ndim == 3:
+            import cv2
+            left_rect = cv2.cvtColor(left_rect, cv2.COLOR_BGR2GRAY)
+            right_rect = cv2.cvtColor(right_rect, cv2.COLOR_BGR2GRAY)
+        frame = Frame(stamp, left_rect, right_rect, self.camera, self.extractor,
+                      self.extractor_right, th_depth_factor=self.p["th_depth"])
+        out = self.tracking.track(frame)
+        state = self.tracking.state
+        tracked_ok = state in (OK, RELOCALIZED) and frame.T_cw is not None and \
+            self.tracking.records[-1][1] is not None
+        t_track = 1000.0 * (time.perf_counter() - t0)
+        if self.threads and tracked_ok and self.local_mapping.queue_size() >= 2 and \
+                self.tracking.n_matches_inliers < self.p["backpressure_inliers"]:
+            # back-pressure: weak tracking while LocalMapping lags (the GIL and a loaded CPU
+            # starve its thread) would soon be LOST; let it catch up before the next frame
+            self.local_mapping.wait_queue_below(2, timeout=1.0)
+        if not self.threads:
+            self.local_mapping.spin_sync()
+            if self.loop_closing is not None:
+                self.loop_closing.spin_sync()
+        corrections = self._collect_corrections()
+        n_tracked = int(np.count_nonzero(frame.mp_ids >= 0)) if tracked_ok else 0
+        T_map_cam = None
+        if tracked_ok:   # through the reference keyframe: includes a correction made just now
+            with self.map.lock:
+                _, kf, T_c_ref, _ = self.tracking.records[-1]
+                while kf.bad and kf.parent is not None:
+                    T_c_ref = T_c_ref @ kf.T_cp
+                    kf = kf.parent
+                T_map_cam = inv_T(T_c_ref @ kf.T_cw)
+        return TrackResult(
+            stamp=float(stamp), state=state,
+            T_map_cam=T_map_cam,
+            n_tracked=n_tracked, is_keyframe=bool(out["is_keyframe"]),
+            keyframe_id=int(out["keyframe_id"]), corrections=corrections,
+            time_ms=t_track if self.threads else 1000.0 * (time.perf_counter() - t0),
+            ref_keyframe_id=self.tracking.ref_kf.id if self.tracking.ref_kf is not None else -1,
+            n_map_points=self.tracking.n_local_points,
+            n_keyframes=len(self.map.good_keyframes()),
+            n_loop_closures=self.map.n_loop_closures, track_ms=t_track)
+
+    def _collect_corrections(self):
+        pending = []
+        with self.map.lock:
+            pending += self.local_mapping.corrections
+            self.local_mapping.corrections = []
+            if self.loop_closing is not None:
+                pending += self.loop_closing.corrections
+                self.loop_closing.corrections = []
+            if not pending:
+                return None
+            reason = max((r for r, _ in pending), key=lambda r: _REASONS.get(r, 0))
+            moved = set()
+            for _, d in pending:
+                moved |= set(d)
+            self.correction_id += 1
+            out = {}
+            for k in sorted(moved):
+                kf = self.map.keyframes.get(k)
+                if kf is not None and not kf.bad:
+                    out[k] = (kf.stamp, inv_T(kf.T_cw))
+        return (reason, self.correction_id, out)
+
+    def keyframe_poses(self) -> Dict[int, Tuple[float, np.ndarray]]:
+        """{kf_id: (stamp, T_map_kf)} of every live keyframe (FULL_MAP message)."""
+        with self.map.lock:
+            return {k.id: (k.stamp, inv_T(k.T_cw)) for k in self.map.good_keyframes()}
+
+    def trajectory(self, include_lost: bool = False):
+        """Every tracked frame's T_map_cam, recomputed from its reference keyframe's current pose
+        (so BA and loop corrections propagate, as ORB-SLAM2 SaveTrajectoryTUM)."""
+        from ..io import Trajectory
+        stamps, Ts = [], []
+        with self.map.lock:
+            for stamp, kf, T_c_ref, lost in self._old_records + self.tracking.records:
+                if lost or kf is None:
+                    continue
+                T = T_c_ref
+                while kf.bad and kf.parent is not None:
+                    T = T @ kf.T_cp
+                    kf = kf.parent
+                stamps.append(stamp)
+                Ts.append(inv_T(T @ kf.T_cw))
+        return Trajectory.from_matrices(stamps, np.array(Ts).reshape(-1, 4, 4))
+
+    def reset(self) -> None:
+        """Start a new map (ORB-SLAM2 Reset after losing track right after initialisation).
+        Frames of the discarded map are dropped from the trajectory."""
+        self.request_reset = False
+        self._stop_threads()
+        self._build()
+
+    def _stop_threads(self) -> None:
+        if self.threads:
+            self.local_mapping.stop()
+            if self.loop_closing is not None:
+                self.loop_closing.stop()
+
+    def shutdown(self) -> None:
+        self._stop_threads()
+
+    @property
+    def state(self) -> str:
+        return self.tracking.state

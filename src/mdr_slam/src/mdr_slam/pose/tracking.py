@@ -1,0 +1,324 @@
+"""Tracking: per-frame camera pose against the map (ORB-SLAM2 Tracking, stereo).
+
+Order per frame, as ORB-SLAM2: constant-velocity prediction + projection of the last frame's map
+points (TrackWithMotionModel); if that fails, descriptor matching against the reference keyframe
+(TrackReferenceKeyFrame); when LOST, relocalization (descriptor matching + PnP RANSAC against
+candidate keyframes); then TrackLocalMap (points of the covisible keyframes projected into the
+frame, pose-only optimization again) and the keyframe decision (NeedNewKeyFrame).
+"""
+from __future__ import annotations
+
+from typing import Dict, List, Optional
+
+import numpy as np
+
+from ..geometry import inv_T
+from .frame import Frame
+from .matcher import ORBmatcher
+from .optimizer import Optimizer, normalize_pose
+
+__all__ = ["Tracking", "NOT_INITIALIZED", "OK", "LOST", "RELOCALIZED"]
+
+NOT_INITIALIZED = "NOT_INITIALIZED"
+OK = "OK"
+LOST = "LOST"
+RELOCALIZED = "RELOCALIZED"
+
+
+class Tracking:
+    def __init__(self, system, params: dict):
+        self.system = system
+        self.p = params
+        self.map = system.map
+        self.extractor = system.extractor
+        self.matcher = ORBmatcher(check_orientation=True)
+        self.state = NOT_INITIALIZED
+        self.velocity: Optional[np.ndarray] = None
+        self.last_frame: Optional[Frame] = None
+        self.ref_kf = None
+        self.last_kf_frame_id = -10 ** 9
+        self.last_reloc_frame_id = -10 ** 9
+        self.local_kfs: List = []
+        self.local_kf_ids: set = set()
+        self.n_matches_inliers = 0
+        self.n_local_points = 0
+        # per-frame record for the trajectory: (stamp, ref kf, T_c_ref, lost)
+        self.records: List[tuple] = []
+
+    # ------------------------------------------------------------------ entry
+    def track(self, frame: Frame) -> dict:
+        mp = self.map
+        out = {"is_keyframe": False, "keyframe_id": -1}
+        with mp.lock:
+            if self.state == NOT_INITIALIZED:
+                if self.stereo_initialization(frame):
+                    self.state = OK
+                    out.update(is_keyframe=True, keyframe_id=self.ref_kf.id)
+                self._record(frame, self.state == OK)
+                self.last_frame = frame
+                return out
+            self._check_ref_kf()
+            relocalized = False
+            if self.state in (OK, RELOCALIZED):
+                ok = False
+                if self.velocity is not None and frame.id > self.last_reloc_frame_id + 1:
+                    ok = self.track_with_motion_model(frame)
+                if not ok:
+                    ok = self.track_reference_keyframe(frame)
+            else:
+                ok = self.relocalization(frame)
+                relocalized = ok
+            frame.ref_kf = self.ref_kf
+            if ok:
+                ok = self.track_local_map(frame)
+            if ok:
+                self.state = RELOCALIZED if relocalized else OK
+                if self.last_frame is not None and self.last_frame.T_cw is not None:
+                    self.velocity = normalize_pose(frame.T_cw @ inv_T(self.last_frame.T_cw))
+                # drop outliers before the keyframe decision (ORB-SLAM2 end of Track)
+                frame.mp_ids[frame.outlier] = -1
+                frame.outlier[:] = False
+                if self.need_new_keyframe(frame):
+                    kf = self.create_new_keyframe(frame)
+                    out.update(is_keyframe=True, keyframe_id=kf.id)
+            else:
+                self.state = LOST
+                self.velocity = None
+                if len(mp.good_keyframes()) <= self.p["reset_if_lost_below_kfs"]:
+                    self.system.request_reset = True
+            self._record(frame, ok)
+            if ok:
+                self.last_frame = frame
+        return out
+
+    def _record(self, frame: Frame, ok: bool) -> None:
+        if ok and self.ref_kf is not None:
+            T_c_ref = frame.T_cw @ inv_T(self.ref_kf.T_cw)
+            self.records.append((frame.stamp, self.ref_kf, T_c_ref, False))
+        else:
+            self.records.append((frame.stamp, None, None, True))
+
+    def _check_ref_kf(self) -> None:
+        while self.ref_kf is not None and self.ref_kf.bad and self.ref_kf.parent is not None:
+            self.ref_kf = self.ref_kf.parent
+
+    # ------------------------------------------------------------------ initialization
+    def stereo_initialization(self, frame: Frame) -> bool:
+        """First frame with enough stereo points becomes keyframe 0 at the origin."""
+        stereo = np.nonzero(frame.depth > 0)[0]
+        if len(stereo) < self.p["min_init_points"]:
+            return False
+        frame.set_pose(np.eye(4))
+        kf = self.map.new_keyframe(frame)
+        self.map.add_points(frame.unproject_stereo(stereo), frame.desc[stereo], kf, stereo)
+        frame.mp_ids[:] = kf.mp_ids
+        self.system.local_mapping.insert_keyframe(kf)
+        self.ref_kf = kf
+        frame.ref_kf = kf
+        self.last_kf_frame_id = frame.id
+        self.local_kfs = [kf]
+        return True
+
+    # ------------------------------------------------------------------ tracking steps
+    def _discard_outliers(self, frame: Frame) -> int:
+        frame.mp_ids[frame.outlier] = -1
+        frame.outlier[:] = False
+        return int(np.count_nonzero(frame.mp_ids >= 0))
+
+    def _update_last_frame(self) -> None:
+        """Last frame's pose re-anchored on its reference keyframe (BA may have moved it)."""
+        last = self.last_frame
+        rec = self.records[-1] if self.records else None
+        if rec is not None and rec[1] is not None and not rec[3]:
+            kf = rec[1]
+            T_c_ref = rec[2]
+            while kf.bad and kf.parent is not None:
+                T_c_ref = T_c_ref @ kf.T_cp
+                kf = kf.parent
+            last.set_pose(T_c_ref @ kf.T_cw)
+
+    def track_with_motion_model(self, frame: Frame) -> bool:
+        self._update_last_frame()
+        frame.set_pose(self.velocity @ self.last_frame.T_cw)
+        frame.mp_ids[:] = -1
+        n = self.matcher.search_by_projection_last(frame, self.last_frame, self.map, th=7.0)
+        if n < 20:
+            frame.mp_ids[:] = -1
+            n = self.matcher.search_by_projection_last(frame, self.last_frame, self.map, th=14.0)
+        if n < 20:
+            return False
+        Optimizer.pose_optimization(frame, self.map)
+        return self._discard_outliers(frame) >= 10
+
+    def track_reference_keyframe(self, frame: Frame) -> bool:
+        frame.mp_ids[:] = -1
+        kp, ids = self.matcher.search_by_descriptors(self.ref_kf, frame, self.map)
+        if len(kp) < 15:
+            return False
+        frame.mp_ids[kp] = ids
+        frame.set_pose(self.last_frame.T_cw)
+        Optimizer.pose_optimization(frame, self.map)
+        return self._discard_outliers(frame) >= 10
+
+    def relocalization(self, frame: Frame) -> bool:
+        """Candidate keyframes (BoW database when a vocabulary is loaded, else the most recent),
+        descriptor matches, PnP RANSAC (cv2.solvePnPRansac), pose-only optimization, and a guided
+        projection search of the candidate's covisible points (ORB-SLAM2 Relocalization)."""
+        import cv2
+        cands = self.system.relocalization_candidates(frame)
+        K = np.array([[frame.fx, 0, frame.cx], [0, frame.fy, frame.cy], [0, 0, 1.0]])
+        for kf in cands:
+            frame.mp_ids[:] = -1
+            kp, ids = self.matcher.search_by_descriptors(kf, frame, self.map, ratio=0.75)
+            if len(kp) < 15:
+                continue
+            ok, rvec, tvec, inl = cv2.solvePnPRansac(
+                self.map.mp_pos[ids].astype(np.float64), frame.uv[kp].astype(np.float64), K, None,
+                iterationsCount=300, reprojectionError=2.0 * 2.0, confidence=0.99,
+                flags=cv2.SOLVEPNP_EPNP)
+            if not ok or inl is None or len(inl) < 10:
+                continue
+            T = np.eye(4)
+            T[:3, :3] = cv2.Rodrigues(rvec)[0]
+            T[:3, 3] = tvec.ravel()
+            inl = inl.ravel()
+            frame.set_pose(T)
+            frame.mp_ids[kp[inl]] = ids[inl]
+            n = Optimizer.pose_optimization(frame, self.map)
+            if n < 10:
+                continue
+            self._discard_outliers(frame)
+            if n < 50:   # guided search in the candidate's neighbourhood, as ORB-SLAM2
+                local = [kf] + self.map.best_covisibles(kf, 10)
+                pts = np.unique(np.concatenate([k.valid_mp_ids(self.map.mp_bad) for k in local]))
+                pts = pts[~np.isin(pts, frame.mp_ids)]
+                self.matcher.search_local_points(frame, self.map, pts, th=10.0 / 4.0)
+                n = Optimizer.pose_optimization(frame, self.map)
+                self._discard_outliers(frame)
+            if n >= 50:
+                self.last_reloc_frame_id = frame.id
+                self.ref_kf = kf
+                return True
+        frame.mp_ids[:] = -1
+        return False
+
+    # ------------------------------------------------------------------ local map
+    def update_local_keyframes(self, frame: Frame) -> None:
+        """K1: keyframes sharing points with the frame; K2: their best covisibles (ORB-SLAM2
+        UpdateLocalKeyFrames); the one sharing most points becomes the reference keyframe."""
+        ids = frame.mp_ids[frame.mp_ids >= 0]
+        ids = ids[~self.map.mp_bad[ids]]
+        cand = {}
+        for kf in [self.ref_kf] + self.local_kfs:
+            if kf is not None and not kf.bad:
+                cand[kf.id] = kf
+        for kf in list(cand.values()):
+            for kid in getattr(kf, "connections", {}):
+                k = self.map.keyframes.get(kid)
+                if k is not None and not k.bad:
+                    cand[kid] = k
+        counts = {}
+        if len(ids):
+            mark = np.zeros(self.map.n, dtype=bool)
+            mark[ids] = True
+            for kid, kf in cand.items():
+                o = kf.mp_ids[kf.mp_ids >= 0]
+                c = int(np.count_nonzero(mark[o]))
+                if c > 0:
+                    counts[kid] = c
+        k1 = sorted(counts, key=lambda k: -counts[k])
+        local = [cand[k] for k in k1]
+        seen = set(k1)
+        max_kfs = self.p["max_local_keyframes"]
+        for kf in list(local):
+            if len(local) >= max_kfs:
+                break
+            conn = getattr(kf, "connections", {})
+            for kid in sorted(conn, key=lambda k: -conn[k])[:10]:
+                if kid not in seen:
+                    k = self.map.keyframes.get(kid)
+                    if k is not None and not k.bad:
+                        local.append(k)
+                        seen.add(kid)
+                        break
+            if kf.parent is not None and not kf.parent.bad and kf.parent.id not in seen:
+                local.append(kf.parent)
+                seen.add(kf.parent.id)
+        self.local_kfs = local[:max_kfs]
+        self.local_kf_ids = set(k.id for k in self.local_kfs)
+        if k1:
+            self.ref_kf = cand[k1[0]]
+            frame.ref_kf = self.ref_kf
+
+    def track_local_map(self, frame: Frame) -> bool:
+        mp = self.map
+        self.update_local_keyframes(frame)
+        if not self.local_kfs:
+            return False
+        pts = np.unique(np.concatenate([k.valid_mp_ids(mp.mp_bad) for k in self.local_kfs]))
+        self.n_local_points = len(pts)
+        matched = frame.mp_ids[frame.mp_ids >= 0]
+        mp.mp_visible[matched] += 1
+        pts = pts[~np.isin(pts, matched)]
+        th = 5.0 if frame.id < self.last_reloc_frame_id + 2 else 1.0
+        _, visible = self.matcher.search_local_points(frame, mp, pts, th=th)
+        mp.mp_visible[visible] += 1
+        Optimizer.pose_optimization(frame, mp)
+        inl = (frame.mp_ids >= 0) & ~frame.outlier
+        ids = frame.mp_ids[inl]
+        mp.mp_found[ids] += 1
+        self.n_matches_inliers = int(np.count_nonzero(inl))
+        if frame.id < self.last_reloc_frame_id + self.p["max_frames"] and self.n_matches_inliers < 50:
+            return False
+        return self.n_matches_inliers >= 30
+
+    # ------------------------------------------------------------------ keyframes
+    def need_new_keyframe(self, frame: Frame) -> bool:
+        mp = self.map
+        lm = self.system.local_mapping
+        n_kfs = len(mp.good_keyframes())
+        max_frames, min_frames = self.p["max_frames"], self.p["min_frames"]
+        if frame.id < self.last_reloc_frame_id + max_frames and n_kfs > max_frames:
+            return False
+        min_obs = 3 if n_kfs > 2 else 2
+        ref_ids = self.ref_kf.valid_mp_ids(mp.mp_bad)
+        n_ref = int(np.count_nonzero(mp.mp_nobs[ref_ids] >= min_obs))
+        idle = lm.accept_keyframes()
+        close = (frame.depth > 0) & (frame.depth < frame.th_depth)
+        tracked = frame.mp_ids >= 0
+        n_tracked_close = int(np.count_nonzero(close & tracked))
+        n_non_tracked_close = int(np.count_nonzero(close & ~tracked))
+        need_close = n_tracked_close < 100 and n_non_tracked_close > 70
+        th_ref = 0.4 if n_kfs < 2 else self.p["th_ref_ratio"]
+        c1a = frame.id >= self.last_kf_frame_id + max_frames
+        c1b = frame.id >= self.last_kf_frame_id + min_frames and idle
+        c1c = self.n_matches_inliers < n_ref * 0.25 or need_close
+        c2 = (self.n_matches_inliers < n_ref * th_ref or need_close) and self.n_matches_inliers > 15
+        if (c1a or c1b or c1c) and c2:
+            if idle:
+                return True
+            lm.interrupt_ba()
+            return lm.queue_size() < 3
+        return False
+
+    def create_new_keyframe(self, frame: Frame):
+        """New keyframe with new map points from close stereo keypoints (CreateNewKeyFrame)."""
+        mp = self.map
+        kf = mp.new_keyframe(frame)
+        kf.parent = self.ref_kf
+        stereo = np.nonzero(frame.depth > 0)[0]
+        stereo = stereo[np.argsort(frame.depth[stereo], kind="stable")]
+        if len(stereo):
+            n_pts = np.arange(1, len(stereo) + 1)
+            stop = (frame.depth[stereo] > frame.th_depth) & (n_pts > self.p["min_close_points"])
+            if np.any(stop):
+                stereo = stereo[: int(np.argmax(stop))]
+            new = stereo[frame.mp_ids[stereo] < 0]
+            if len(new):
+                ids = mp.add_points(frame.unproject_stereo(new), frame.desc[new], kf, new)
+                frame.mp_ids[new] = ids
+        self.ref_kf = kf
+        frame.ref_kf = kf
+        self.last_kf_frame_id = frame.id
+        self.system.local_mapping.insert_keyframe(kf)
+        return kf

@@ -1,0 +1,80 @@
+"""pose_node with source:=orb: stereo images + camera_info in; pose, tracking state, keyframes,
+tf and the save_trajectory service out; bad input is skipped, not fatal."""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from conftest import wait_for
+
+pytestmark = pytest.mark.ros
+
+
+def test_orb_node_tracks_synthetic_stream(rospy_client, start_process, tmp_path):
+    rospy = rospy_client
+    from mdr_slam import conversions as cv
+    from mdr_slam.camera import StereoCamera
+    from mdr_slam.geometry import inv_T
+    from mdr_slam.pose.synthetic import BoxRoom, orbit_trajectory
+    from mdr_slam_msgs.msg import KeyFrameArray, TrackingState
+    from mdr_slam_msgs.srv import SaveTrajectory
+    from geometry_msgs.msg import PoseStamped
+    from sensor_msgs.msg import CameraInfo, Image
+
+    cam = StereoCamera.from_rectified(480, 320, 300.0, 300.0, 240.0, 160.0, 0.12)
+    room = BoxRoom((3.0, 1.5, 3.0), tex_size=768, seed=3)
+    poses = orbit_trajectory(12, radius=1.0, arc=np.pi / 4)
+    frames = [room.render_stereo(T, cam) for T in poses]
+    traj_path = str(tmp_path / "exit.txt")
+    node = start_process(["rosrun", "mdr_slam", "pose_node", "_source:=orb", "_threads:=false", "_n_features:=1000",
+                          "__name:=orb_test", "_trajectory_path:=" + traj_path,
+                          "left/image:=/t/left/image", "right/image:=/t/right/image",
+                          "left/camera_info:=/t/left/info", "right/camera_info:=/t/right/info"],
+                         "orb")
+    got, states, kfs = [], [], []
+    subs = [rospy.Subscriber("/mdr/pose", PoseStamped, got.append),
+            rospy.Subscriber("/mdr/tracking_state", TrackingState, states.append),
+            rospy.Subscriber("/mdr/keyframes", KeyFrameArray, kfs.append)]
+    pubs = {n: rospy.Publisher("/t/%s" % n, t, queue_size=20) for n, t in
+            (("left/image", Image), ("right/image", Image), ("left/info", CameraInfo),
+             ("right/info", CameraInfo))}
+    assert wait_for(lambda: all(p.get_num_connections() > 0 for p in pubs.values()) and
+                    all(s.get_num_connections() > 0 for s in subs), 30), node.output()
+    base = rospy.Time.now()
+    li = cv.model_to_camera_info(cam.left, frame_id="cam")
+    ri = cv.model_to_camera_info(cam.right, frame_id="cam")
+
+    def send(i, left, right, stamp):
+        for msg, name in ((li, "left/info"), (ri, "right/info")):
+            msg.header.stamp = stamp
+            pubs[name].publish(msg)
+        pubs["left/image"].publish(cv.numpy_to_image(left, "mono8", stamp, "cam"))
+        pubs["right/image"].publish(cv.numpy_to_image(right, "mono8", stamp, "cam"))
+
+    for i, (l, r) in enumerate(frames):
+        send(i, l, r, base + rospy.Duration(0.1 * (i + 1)))
+        assert wait_for(lambda: len(states) >= i + 1, 20), node.output()
+    # bad input: a wrongly sized pair is skipped with a warning, the node lives on
+    send(99, np.zeros((100, 100), np.uint8), np.zeros((100, 100), np.uint8),
+         base + rospy.Duration(5.0))
+    rospy.sleep(0.5)
+    assert node.proc.poll() is None, node.output()
+    assert len(states) == len(frames)
+    assert [s.state for s in states].count(TrackingState.OK) == len(frames)
+    assert wait_for(lambda: len(got) == len(frames), 5)
+    T_est = cv.pose_stamped_to_matrix(got[-1])
+    T_true = inv_T(poses[0]) @ poses[-1]
+    assert np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]) < 0.05
+    assert kfs and kfs[0].reason == KeyFrameArray.NEW_KEYFRAME and kfs[0].keyframes[0].id == 0
+    # trajectory service
+    rospy.wait_for_service("/orb_test/save_trajectory", 10)
+    save = rospy.ServiceProxy("/orb_test/save_trajectory", SaveTrajectory)
+    out = str(tmp_path / "traj.kitti")
+    resp = save(out, "")
+    assert resp.success and resp.n_poses == len(frames), resp.message
+    assert np.loadtxt(out).shape == (len(frames), 12)
+    # trajectory on shutdown
+    node.stop()
+    assert os.path.exists(traj_path) and np.loadtxt(traj_path).shape == (len(frames), 8)
