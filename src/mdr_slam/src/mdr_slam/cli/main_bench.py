@@ -1,0 +1,190 @@
+"""``mdr bench``: the paper's ablation (Table 2) on simulated sequences with exact ground truth.
+
+    mdr bench --ablation --out DIR [--scenes office,corridor] [--duration 30] [--pose-source groundtruth]
+
+For each scene: render the sequence (``mdr sim``, skipped when ``DIR/sim_<scene>`` exists), run the
+offline pipeline (``mdr run``) four times -- ELAS-only baseline (temporal off, confidence off),
+temporal only, confidence only, full -- and score each map against the simulator's ground-truth
+map (``mdr eval map``: RMSE of estimated-to-truth distances, completeness at 5 cm). Writes
+``DIR/ablation.json``, ``DIR/ablation.md`` and ``DIR/ablation.png``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from collections import OrderedDict
+
+CONFIGS = OrderedDict([
+    ("elas_only", {"temporal": False, "confidence": False}),
+    ("temporal", {"temporal": True, "confidence": False}),
+    ("confidence", {"temporal": False, "confidence": True}),
+    ("full", {"temporal": True, "confidence": True}),
+])
+
+
+def add_parser(sub, name, help_text):
+    p = sub.add_parser(name, help=help_text, description=__doc__,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--ablation", action="store_true", required=True,
+                   help="run the map ablation (the live benchmark is not implemented yet)")
+    p.add_argument("--out", required=True)
+    p.add_argument("--scenes", default="office,corridor")
+    p.add_argument("--duration", type=float, default=30.0)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--pose-source", choices=("groundtruth", "orb"), default="groundtruth")
+    p.add_argument("--configs", default=",".join(CONFIGS),
+                   help="subset of %s" % ", ".join(CONFIGS))
+    p.add_argument("--jobs", type=int, default=2, help="runs in parallel (one per core)")
+    p.add_argument("--max-frames", type=int, default=None)
+    p.add_argument("--threshold", type=float, default=0.05, help="completeness threshold (m)")
+    p.add_argument("--set", action="append", default=[], metavar="NODE.KEY=VALUE",
+                   help="parameter override passed to every mdr run")
+    p.set_defaults(func=run)
+    return p
+
+
+def _mdr():
+    """The mdr command as this interpreter runs it (works without the catkin devel space too)."""
+    return [sys.executable, "-c", "import sys; from mdr_slam.cli import main; sys.exit(main())"]
+
+
+def _run_parallel(cmds, jobs):
+    """Run (name, argv, log) commands, at most ``jobs`` at a time; returns {name: returncode}."""
+    pending, running, codes = list(cmds), [], {}
+    while pending or running:
+        while pending and len(running) < jobs:
+            name, argv, log = pending.pop(0)
+            running.append((name, subprocess.Popen(argv, stdout=open(log, "wb"),
+                                                   stderr=subprocess.STDOUT)))
+        time.sleep(0.5)
+        for item in list(running):
+            if item[1].poll() is not None:
+                codes[item[0]] = item[1].returncode
+                running.remove(item)
+    return codes
+
+
+def run(args) -> int:
+    from ..eval import map_metrics
+    from ..io import cloud_xyz, read_cloud
+    os.makedirs(args.out, exist_ok=True)
+    scenes = [s for s in args.scenes.split(",") if s]
+    configs = [c for c in args.configs.split(",") if c]
+    for c in configs:
+        if c not in CONFIGS:
+            raise SystemExit("unknown config %r (known: %s)" % (c, ", ".join(CONFIGS)))
+    # 1. sequences
+    sims = []
+    for scene in scenes:
+        d = os.path.join(args.out, "sim_" + scene)
+        if not os.path.exists(os.path.join(d, "gt_map.ply")):
+            sims.append(("sim_" + scene, _mdr() + ["sim", "--scene", scene, "--duration",
+                                                   str(args.duration), "--seed", str(args.seed),
+                                                   "--out", d, "--quiet"],
+                         os.path.join(args.out, "sim_%s.log" % scene)))
+    for name, argv, log in sims:  # the simulator uses both cores itself
+        print("mdr bench: rendering %s" % name, file=sys.stderr)
+        if _run_parallel([(name, argv, log)], 1)[name] != 0:
+            print(open(log, errors="replace").read()[-2000:], file=sys.stderr)
+            return 1
+    # 2. the four runs per scene
+    runs = []
+    for scene in scenes:
+        for c in configs:
+            d = os.path.join(args.out, "%s_%s" % (scene, c))
+            argv = _mdr() + ["run", os.path.join(args.out, "sim_" + scene, "sequence.bag"),
+                             "--out", d, "--pose-source", args.pose_source, "--quiet",
+                             "--temporal", "on" if CONFIGS[c]["temporal"] else "off",
+                             "--confidence", "on" if CONFIGS[c]["confidence"] else "off"]
+            if args.max_frames:
+                argv += ["--max-frames", str(args.max_frames)]
+            for s in args.set:
+                argv += ["--set", s]
+            runs.append(("%s_%s" % (scene, c), argv, d + ".log"))
+    print("mdr bench: %d runs, %d at a time" % (len(runs), args.jobs), file=sys.stderr)
+    t0 = time.time()
+    codes = _run_parallel(runs, args.jobs)
+    print("mdr bench: runs took %.0f s" % (time.time() - t0), file=sys.stderr)
+    # 3. scores
+    results = OrderedDict()
+    for scene in scenes:
+        gt = read_cloud(os.path.join(args.out, "sim_" + scene, "gt_map.ply"))
+        gt_xyz = cloud_xyz(gt)
+        results[scene] = OrderedDict()
+        for c in configs:
+            name = "%s_%s" % (scene, c)
+            d = os.path.join(args.out, name)
+            if codes.get(name) != 0:
+                results[scene][c] = {"error": "mdr run failed, see %s.log" % d}
+                continue
+            est = cloud_xyz(read_cloud(os.path.join(d, "map.ply")))
+            m = map_metrics(est, gt_xyz, threshold=args.threshold, gt_labels=gt.get("surface"))
+            summ = json.load(open(os.path.join(d, "summary.json")))
+            results[scene][c] = OrderedDict([
+                ("rmse_m", m["accuracy_rmse"]), ("completeness", m["completeness"]),
+                ("accuracy_5cm", m["accuracy"]), ("n_points", int(len(est))),
+                ("per_label", {k: {"rmse_m": v.get("accuracy_rmse"),
+                                   "completeness": v.get("completeness"),
+                                   "n": v.get("n_estimate")}
+                               for k, v in m.get("per_label", {}).items()}),
+                ("frames", summ["frames_in"]), ("timing", summ["timing"].get("frame"))])
+    report = {"scenes": scenes, "configs": configs, "duration_s": args.duration,
+              "pose_source": args.pose_source, "threshold_m": args.threshold, "results": results}
+    with open(os.path.join(args.out, "ablation.json"), "w") as f:
+        json.dump(report, f, indent=2)
+    md = _markdown(report)
+    with open(os.path.join(args.out, "ablation.md"), "w") as f:
+        f.write(md)
+    _plot(report, os.path.join(args.out, "ablation.png"))
+    print(md)
+    return 0 if all(v == 0 for v in codes.values()) else 1
+
+
+def _markdown(report) -> str:
+    lines = ["# Map ablation (paper Table 2), %s poses, completeness at %.0f cm" % (
+        report["pose_source"], 100 * report["threshold_m"]), "",
+        "| scene | config | map RMSE (m) | completeness | points | RMSE low-texture | RMSE textured "
+        "| RMSE specular | RMSE vs ELAS-only |", "|---|---|---|---|---|---|---|---|---|"]
+    for scene, res in report["results"].items():
+        base = res.get("elas_only", {}).get("rmse_m")
+        for c, r in res.items():
+            if "error" in r:
+                lines.append("| %s | %s | %s |" % (scene, c, r["error"]))
+                continue
+            pl = r["per_label"]
+            cell = lambda k: ("%.4f" % pl[k]["rmse_m"]) if pl.get(k, {}).get("rmse_m") is not None \
+                else "-"
+            rel = ("%+.1f %%" % (100 * (r["rmse_m"] / base - 1))) if base else "-"
+            lines.append("| %s | %s | %.4f | %.1f %% | %d | %s | %s | %s | %s |" % (
+                scene, c, r["rmse_m"], 100 * r["completeness"], r["n_points"],
+                cell("low_texture"), cell("textured"), cell("specular"), rel))
+    return "\n".join(lines) + "\n"
+
+
+def _plot(report, path):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+    scenes = list(report["results"])
+    configs = report["configs"]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4), dpi=100)
+    w = 0.8 / max(len(configs), 1)
+    for j, c in enumerate(configs):
+        x = np.arange(len(scenes)) + j * w
+        rm = [report["results"][s].get(c, {}).get("rmse_m", np.nan) for s in scenes]
+        co = [100 * report["results"][s].get(c, {}).get("completeness", np.nan) for s in scenes]
+        axes[0].bar(x, rm, w, label=c)
+        axes[1].bar(x, co, w, label=c)
+    for ax, t in zip(axes, ("map RMSE (m)", "completeness (%)")):
+        ax.set_xticks(np.arange(len(scenes)) + 0.4 - w / 2)
+        ax.set_xticklabels(scenes)
+        ax.set_title(t)
+    axes[0].legend()
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)

@@ -1,0 +1,119 @@
+"""The offline pipeline (mdr run), the ablation bench (mdr bench --ablation) and the map pictures,
+end to end on a small simulated sequence with exact ground truth."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from mdr_slam.io import cloud_xyz, read_cloud, read_tum
+
+# At half resolution one disparity step is twice as much depth: the relative convergence threshold
+# tau (sigma_Z / Z) is loosened accordingly so points converge within the short run.
+SMALL = ["--set", "depth.tau=0.02"]
+MDR = [sys.executable, "-c", "import sys; from mdr_slam.cli import main; sys.exit(main())"]
+
+
+@pytest.fixture(scope="module")
+def small_sim(tmp_path_factory):
+    """The office loop at half resolution (376x240) and 10 Hz, of which the runs use the first 60
+    frames (6 s: a shorter sequence would make the one-lap loop unrealistically fast)."""
+    from mdr_slam.sim import generate
+    d = str(tmp_path_factory.mktemp("sim_office"))
+    generate(d, scene="office", duration=30.0, seed=1, rate=10.0, scale=0.5, workers=2,
+             map_cell=0.02)
+    return d
+
+
+def _mdr(*args, check=True):
+    r = subprocess.run(MDR + list(args), capture_output=True, text=True)
+    if check:
+        assert r.returncode == 0, r.stdout + r.stderr
+    return r
+
+
+def test_mdr_run_writes_map_trajectory_and_summary(small_sim, tmp_path):
+    from mdr_slam.eval import map_metrics
+    out = str(tmp_path / "run")
+    _mdr("run", os.path.join(small_sim, "sequence.bag"), "--out", out, "--quiet", "--max-frames",
+         "60", *SMALL)
+    s = json.load(open(os.path.join(out, "summary.json")))
+    assert s["pose_source"] == "groundtruth"   # chosen because the bag has ground truth
+    assert s["frames_in"] == s["frames_posed"] == 60
+    assert s["frames_integrated"] > 40
+    for stage in ("depth", "depth.elas", "depth.filter", "fusion", "frame"):
+        assert s["timing"][stage]["median_ms"] > 0
+        assert s["timing"][stage]["p90_ms"] >= s["timing"][stage]["median_ms"]
+    traj = read_tum(os.path.join(out, "trajectory.tum"))
+    gt = read_tum(os.path.join(small_sim, "groundtruth.tum"))
+    assert len(traj) == 60
+    np.testing.assert_allclose(traj.positions, gt.positions[:60], atol=1e-6)
+    est = cloud_xyz(read_cloud(os.path.join(out, "map.ply")))
+    assert s["map_points"] == len(est) > 500
+    m = map_metrics(est, cloud_xyz(read_cloud(os.path.join(small_sim, "gt_map.ply"))))
+    print("small office, full pipeline: map RMSE %.4f m, completeness %.1f %%, %d points"
+          % (m["accuracy_rmse"], 100 * m["completeness"], len(est)))
+    assert m["accuracy_rmse"] < 0.10          # half resolution: 2x coarser disparities
+    assert m["accuracy"] > 0.8
+    assert m["completeness"] > 0.02           # the ground-truth map covers all 30 s
+
+
+def test_ablation_switches_change_the_map(small_sim, tmp_path):
+    """--temporal off publishes every ELAS pixel (many more, noisier points than the filter)."""
+    outs = {}
+    for name, t in (("base", "off"), ("temporal", "on")):
+        outs[name] = str(tmp_path / name)
+        _mdr("run", os.path.join(small_sim, "sequence.bag"), "--out", outs[name], "--quiet",
+             "--temporal", t, "--confidence", "off", "--max-frames", "30", *SMALL)
+    sb, st = (json.load(open(os.path.join(outs[k], "summary.json"))) for k in ("base", "temporal"))
+    assert sb["temporal"] is False and sb["confidence"] is False
+    assert sb["points_published"] > 2 * st["points_published"] > 0
+    r = _mdr("run", os.path.join(small_sim, "sequence.bag"), "--out", str(tmp_path / "x"),
+             "--temporal", "maybe", check=False)
+    assert r.returncode != 0 and "on or off" in r.stderr
+
+
+def test_run_refuses_bad_overrides_and_missing_input(tmp_path):
+    r = _mdr("run", str(tmp_path / "missing.bag"), "--out", str(tmp_path / "o"), check=False)
+    assert r.returncode != 0
+    r = _mdr("run", str(tmp_path / "missing.bag"), "--out", str(tmp_path / "o"), "--set", "nodot=1",
+             check=False)
+    assert r.returncode != 0 and "NODE.KEY=VALUE" in r.stdout + r.stderr
+
+
+def test_bench_ablation_report(small_sim, tmp_path):
+    out = tmp_path / "bench"
+    out.mkdir()
+    os.symlink(small_sim, str(out / "sim_office"))
+    r = _mdr("bench", "--ablation", "--out", str(out), "--scenes", "office", "--max-frames", "20",
+             "--configs", "elas_only,full", *SMALL)
+    rep = json.load(open(str(out / "ablation.json")))
+    res = rep["results"]["office"]
+    assert set(res) == {"elas_only", "full"}
+    for c in res.values():
+        assert c["rmse_m"] > 0 and 0 < c["completeness"] <= 1 and c["n_points"] > 0
+    assert "| office | full |" in r.stdout
+    assert os.path.getsize(str(out / "ablation.png")) > 5000
+
+
+def test_map_pictures_show_the_map(tmp_path):
+    from mdr_slam.viz import drop_ceiling, save_map_pictures
+    import cv2
+    rng = np.random.default_rng(0)
+    n = 40000
+    floor = np.c_[rng.uniform(0, 8, n), rng.uniform(0, 6, n), np.zeros(n)]
+    wall = np.c_[rng.uniform(0, 8, n), np.zeros(n), rng.uniform(0, 2.8, n)]
+    ceiling = np.c_[rng.uniform(0, 8, n), rng.uniform(0, 6, n), np.full(n, 2.8)]
+    P = np.concatenate([floor, wall, ceiling])
+    keep = drop_ceiling(P)
+    assert keep[: 2 * n].mean() > 0.9 and not keep[2 * n:].any()
+    top, persp = save_map_pictures(P, str(tmp_path / "map"))
+    for path in (top, persp):
+        img = cv2.imread(path)
+        assert img is not None and img.shape[0] > 200 and img.shape[1] > 200
+        coloured = (np.abs(img.astype(int) - 255).sum(axis=2) > 60).mean()
+        assert coloured > 0.15, (path, coloured)   # the map covers a good part of the picture
