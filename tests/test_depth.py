@@ -356,3 +356,18 @@ def test_pose_cache_interpolates_and_never_extrapolates():
     assert c.lookup(1.6) is None                                 # gap 0.8 s > max_gap
     c.add(9.0, pose())
     assert len(c) == 1                                           # older than max_age dropped
+
+
+def test_discontinuity_mask_drops_flying_pixels_only():
+    """A box edge in front of a wall: the ramp ELAS interpolates between them is dropped, the
+    smooth (even slanted) surfaces on either side are kept."""
+    from mdr_slam.depth.stereo_depth import mask_discontinuities
+    d = np.tile(np.linspace(20.0, 22.0, 60, dtype=np.float32), (40, 1))  # slanted wall
+    d[:, 30:] += 15.0                                                     # a box in front
+    d[:, 29] = 27.0                                                       # interpolated ramp
+    d[0, 0] = -1.0                                                        # invalid stays invalid
+    out = mask_discontinuities(d, max_step=3.0, radius=2)
+    assert np.all(out[:, 27:32] < 0)          # within 2 px of the edge: removed
+    assert np.all(out[1:, :25] > 0) and np.all(out[:, 32:] > 0)
+    np.testing.assert_array_equal(out[1:, :25], d[1:, :25])
+    assert out[0, 0] < 0

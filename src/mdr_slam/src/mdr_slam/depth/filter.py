@@ -46,7 +46,7 @@ FILTER_DEFAULTS: Dict[str, object] = {
     # Kalman filter
     "init_var_scale": 4.0,      # keyframe init: measurement variance x this ("high uncertainty")
     "chi2_threshold": 6.63,     # innovation^2/(P+R) gate: chi-square 1 dof, 99 %
-    "process_noise": 0.001,     # relative depth std added per frame (pose/drift error)
+    "process_noise": 0.003,     # relative depth std added per frame (keeps the filter responsive)
     "interpolation": "nearest", # "nearest" or "bilinear" sampling of the current measurement
     "bilinear_consistency": 0.05,  # bilinear only when the 4 neighbours agree within 5 % depth
     "reinit_min_rejections": 3, # re-initialize a pixel rejected >= this often and ...

@@ -15,15 +15,36 @@ from .elas_matcher import (ELAS_DEFAULTS, ElasMatcher, disparity_sigma, measurem
                            to_gray8)
 from .filter import FILTER_DEFAULTS, DepthFilter, DepthOutput
 
-__all__ = ["StereoDepth", "DEPTH_DEFAULTS"]
+__all__ = ["StereoDepth", "DEPTH_DEFAULTS", "mask_discontinuities"]
 
 # Flat parameters (config/depth.yaml); ``elas`` is the dict of libelas parameters.
 DEPTH_DEFAULTS: Dict[str, object] = dict(FILTER_DEFAULTS)
 DEPTH_DEFAULTS.update({
     "sigma_d": 0.5,             # disparity noise (px) of an ELAS match -> measurement variance
     "sigma_d_texture": 1.0,     # > 0: add (k / local gradient)^2 (low texture = worse match)
+    "max_disparity_step": 3.0,  # px; > 0: mask pixels near depth discontinuities (see below)
+    "discontinuity_radius": 2,  # px; the neighbourhood of that test ((2r+1)^2 window)
     "elas": dict(ELAS_DEFAULTS),
 })
+
+
+def mask_discontinuities(disp: np.ndarray, max_step: float, radius: int = 2) -> np.ndarray:
+    """``disp`` with pixels near a depth discontinuity set invalid (-1).
+
+    ELAS interpolates its support-point triangulation across object borders, so pixels between a
+    foreground edge and the background get disparities of neither ("flying pixels"). They are
+    consistent from frame to frame, so the temporal filter cannot average them away and they
+    would land in the map as veils. A pixel whose (2r+1)^2 neighbourhood spans more than
+    ``max_step`` pixels of disparity is dropped (min/max filters, vectorized).
+    """
+    import cv2
+    valid = disp > 0
+    k = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+    dmax = cv2.dilate(np.where(valid, disp, 0).astype(np.float32), k)
+    dmin = cv2.erode(np.where(valid, disp, np.float32(1e6)).astype(np.float32), k)
+    out = np.array(disp, dtype=np.float32, copy=True)
+    out[valid & (dmax - dmin > max_step)] = -1.0
+    return out
 
 
 def split_params(params: Optional[dict]):
@@ -85,6 +106,8 @@ class StereoDepth:
     def measurement(self, disp: np.ndarray, grey: np.ndarray):
         """(Z, var) of a disparity with this configuration's noise model."""
         p = self.params
+        if p["max_disparity_step"] > 0:
+            disp = mask_discontinuities(disp, p["max_disparity_step"], p["discontinuity_radius"])
         sigma = disparity_sigma(grey, p["sigma_d"], p["sigma_d_texture"])
         return measurement_from_disparity(disp, self.camera, sigma, p["min_depth"], p["max_depth"])
 
