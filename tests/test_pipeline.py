@@ -117,3 +117,22 @@ def test_map_pictures_show_the_map(tmp_path):
         assert img is not None and img.shape[0] > 200 and img.shape[1] > 200
         coloured = (np.abs(img.astype(int) - 255).sum(axis=2) > 60).mean()
         assert coloured > 0.15, (path, coloured)   # the map covers a good part of the picture
+
+
+def test_demo_leaves_map_report_and_pictures(tmp_path):
+    """The README's first command, small: render, map, score, draw (pictures show the map)."""
+    import cv2
+    out = str(tmp_path / "output")
+    r = _mdr("demo", "--out", out, "--scale", "0.5", "--max-frames", "40", "--pose-source",
+             "groundtruth", *[a.replace("--set", "--set") for a in SMALL])
+    demo = os.path.join(out, "demo")
+    for name in ("map.ply", "report.md", "summary.json", "trajectory.tum", "map_top.png",
+                 "map_perspective.png", "trajectory.png"):
+        assert os.path.getsize(os.path.join(demo, name)) > 100, name
+    report = open(os.path.join(demo, "report.md")).read()
+    assert "map RMSE" in report and "frames in / posed / integrated" in report, report
+    for name in ("map_top.png", "map_perspective.png"):
+        img = cv2.imread(os.path.join(demo, name))
+        coloured = (np.abs(img.astype(int) - 255).sum(axis=2) > 60).mean()
+        assert coloured > 0.02, (name, coloured)
+    assert "[mdr demo] done" in r.stdout

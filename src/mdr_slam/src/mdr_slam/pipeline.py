@@ -128,7 +128,8 @@ class Pipeline:
         self.timer = StageTimer()
         self.counts = OrderedDict([("frames_in", 0), ("frames_posed", 0), ("frames_integrated", 0),
                                    ("frames_lost", 0), ("points_published", 0),
-                                   ("loop_corrections", 0)])
+                                   ("local_ba_corrections", 0), ("loop_closures", 0)])
+        self._anchor = (None, None)           # (reference keyframe id, T_map_kf) of this frame
         self.poses: List[tuple] = []          # (stamp, T_map_cam) of every posed frame
         self.states: List[tuple] = []         # (stamp, state)
 
@@ -155,8 +156,11 @@ class Pipeline:
         rec["points"] = n
         if n:
             self.counts["points_published"] += n
+            # Points are anchored to the pose node's reference keyframe, so a later loop closure or
+            # bundle adjustment that moves the keyframe moves them too (no depth re-run).
+            kf_id, T_map_kf = self._anchor
             self.timer.time("fusion", self.map.integrate, out.points, T, frame.stamp,
-                            intensity=out.intensity)
+                            intensity=out.intensity, anchor_id=kf_id, T_map_anchor=T_map_kf)
             self.counts["frames_integrated"] += 1
         self.timer.add("frame", 1e3 * (time.perf_counter() - t_frame))
         return rec
@@ -170,10 +174,18 @@ class Pipeline:
             return T, "OK", None
         res = self.timer.time("pose", self.tracker.track, frame.stamp, left, right)
         if res.corrections:
-            self.counts["loop_corrections"] += 1
-            _, _, kfs = res.corrections
-            self.map.apply_corrections({k: v[1] for k, v in kfs.items()})
+            reason, _, kfs = res.corrections
+            key = "loop_closures" if reason == "loop_closure" else "local_ba_corrections"
+            self.counts[key] += 1
+            self.timer.time("fusion.corrections", self.map.apply_corrections,
+                            {k: v[1] for k, v in kfs.items()})
         T = res.T_map_cam if res.T_map_cam is not None and is_valid_T(res.T_map_cam) else None
+        ref = res.keyframe_id if res.is_keyframe and res.keyframe_id >= 0 else res.ref_keyframe_id
+        if T is not None and ref is not None and ref >= 0:
+            kf_poses = self.tracker.keyframe_poses()
+            self._anchor = (int(ref), kf_poses[ref][1]) if ref in kf_poses else (None, None)
+        else:
+            self._anchor = (None, None)
         return T, res.state, bool(res.is_keyframe)
 
     # ------------------------------------------------------------------ outputs

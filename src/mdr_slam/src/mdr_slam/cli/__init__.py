@@ -18,6 +18,7 @@ COMMANDS = [
     ("bench", "main_bench", "benchmarks: live rates, CPU, RSS and the paper's ablation"),
     ("mesh", "main_mesh", "fuse a map or keyframe depth into a TSDF and write a mesh"),
     ("vocab", "main_vocab", "train the bag-of-words ORB vocabulary for loop closure"),
+    ("demo", "main_demo", "map the built-in sample sequence: map, report and pictures in output/"),
 ]
 
 
