@@ -86,6 +86,7 @@ class ElasMatcher:
         if preset not in ("robotics", "middlebury"):
             raise ValueError("ELAS preset must be 'robotics' or 'middlebury', got %r" % p["preset"])
         self._elas = elas.Elas()
+        self._buffers = None  # persistent input buffers (see compute)
         self._elas.set_preset(elas.PRESET_ROBOTICS if preset == "robotics" else elas.PRESET_MIDDLEBURY)
         for k in _ELAS_ATTRS:
             if k in p:
@@ -106,7 +107,16 @@ class ElasMatcher:
         else:
             left, right = to_gray8(left), to_gray8(right)
         h, w = left.shape
-        disp = self._elas.process(left, right)[0]
+        # pyelas 1.0.1 takes a reference to its two input arrays on every call and never releases
+        # it, so every frame's images would stay in memory for ever (measured: +1 MB per call,
+        # the live depth node grew 14 MB/s). Handing it the same two buffers each time bounds the
+        # leak to those buffers; the copy costs two memcpy of the image.
+        if self._buffers is None or self._buffers[0].shape != (h, w):
+            self._buffers = (np.empty((h, w), np.uint8), np.empty((h, w), np.uint8))
+        bl, br = self._buffers
+        np.copyto(bl, left)
+        np.copyto(br, right)
+        disp = self._elas.process(bl, br)[0]
         if disp.shape != (h, w):  # subsampling: every 2nd pixel -> nearest back to full size
             import cv2
             disp = cv2.resize(disp, (w, h), interpolation=cv2.INTER_NEAREST)
