@@ -1,6 +1,14 @@
-"""``mdr bench``: the paper's ablation (Table 2) on simulated sequences with exact ground truth.
+"""``mdr bench``: the live system's rates and resources (paper Table 4), and the paper's ablation
+(Table 2) on simulated sequences with exact ground truth.
 
+    mdr bench BAG --out DIR [--duration S] [--loop] [--rate 1] [--pose-source orb|groundtruth]
     mdr bench --ablation --out DIR [--scenes office,corridor] [--duration 30] [--pose-source groundtruth]
+
+Live (``mdr bench BAG``): starts a private roscore, ``roslaunch mdr_slam mdr.launch bag:=BAG`` (the
+three nodes and ``rosbag play --clock``), samples every node's CPU % and RSS once a second (psutil),
+listens to the nodes' topics and ``/diagnostics``, and writes ``DIR/bench.json`` (map_integration_hz,
+depth_hz, pose_hz, frames_in, frames_tracked, latency_ms, cpu_percent and rss_mb per node and in
+total, median and max), ``DIR/report.md`` and ``DIR/resources.png``.
 
 For each scene: render the sequence (``mdr sim``, skipped when ``DIR/sim_<scene>`` exists), run the
 offline pipeline (``mdr run``) four times -- ELAS-only baseline (temporal off, confidence off),
@@ -29,13 +37,18 @@ CONFIGS = OrderedDict([
 def add_parser(sub, name, help_text):
     p = sub.add_parser(name, help=help_text, description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--ablation", action="store_true", required=True,
-                   help="run the map ablation (the live benchmark is not implemented yet)")
+    p.add_argument("bag", nargs="?", help="bag to play live (omit with --ablation)")
+    p.add_argument("--ablation", action="store_true", help="run the offline map ablation")
     p.add_argument("--out", required=True)
+    p.add_argument("--loop", action="store_true", help="live: play the bag in a loop")
+    p.add_argument("--rate", type=float, default=1.0, help="live: rosbag play rate")
+    p.add_argument("--live-duration", type=float, default=None,
+                   help="live: seconds to run (default: the bag's length / rate + 15 s)")
     p.add_argument("--scenes", default="office,corridor")
     p.add_argument("--duration", type=float, default=30.0)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--pose-source", choices=("groundtruth", "orb"), default="groundtruth")
+    p.add_argument("--pose-source", choices=("groundtruth", "orb"), default=None,
+                   help="default: groundtruth for --ablation, orb live")
     p.add_argument("--configs", default=",".join(CONFIGS),
                    help="subset of %s" % ", ".join(CONFIGS))
     p.add_argument("--jobs", type=int, default=2, help="runs in parallel (one per core)")
@@ -69,6 +82,15 @@ def _run_parallel(cmds, jobs):
 
 
 def run(args) -> int:
+    if not args.ablation:
+        if not args.bag:
+            raise SystemExit("mdr bench: give a BAG for the live benchmark, or --ablation")
+        from .bench_live import run_live
+        return run_live(args)
+    return run_ablation(args)
+
+
+def run_ablation(args) -> int:
     from ..eval import map_metrics
     from ..io import cloud_xyz, read_cloud
     os.makedirs(args.out, exist_ok=True)
@@ -97,7 +119,7 @@ def run(args) -> int:
         for c in configs:
             d = os.path.join(args.out, "%s_%s" % (scene, c))
             argv = _mdr() + ["run", os.path.join(args.out, "sim_" + scene, "sequence.bag"),
-                             "--out", d, "--pose-source", args.pose_source, "--quiet",
+                             "--out", d, "--pose-source", args.pose_source or "groundtruth", "--quiet",
                              "--temporal", "on" if CONFIGS[c]["temporal"] else "off",
                              "--confidence", "on" if CONFIGS[c]["confidence"] else "off"]
             if args.max_frames:
@@ -133,7 +155,8 @@ def run(args) -> int:
                                for k, v in m.get("per_label", {}).items()}),
                 ("frames", summ["frames_in"]), ("timing", summ["timing"].get("frame"))])
     report = {"scenes": scenes, "configs": configs, "duration_s": args.duration,
-              "pose_source": args.pose_source, "threshold_m": args.threshold, "results": results}
+              "pose_source": args.pose_source or "groundtruth", "threshold_m": args.threshold,
+              "results": results}
     with open(os.path.join(args.out, "ablation.json"), "w") as f:
         json.dump(report, f, indent=2)
     md = _markdown(report)

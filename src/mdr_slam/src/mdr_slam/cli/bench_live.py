@@ -1,0 +1,345 @@
+"""The live half of ``mdr bench``: the three nodes under roslaunch on a bag at real-time rate,
+measured from outside the way a user would (psutil per node process, topic counts,
+``/diagnostics``). See ``mdr bench --help``.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections import OrderedDict
+from typing import Dict, List
+
+import numpy as np
+
+NODES = ("pose_node", "depth_node", "fusion_node")
+
+
+def _free_port() -> int:
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    return port
+
+
+def _bag_duration(path: str) -> float:
+    import rosbag
+    with rosbag.Bag(path) as b:
+        return float(b.get_end_time() - b.get_start_time())
+
+
+def _stereo_pairs(path: str) -> int:
+    import rosbag
+    with rosbag.Bag(path) as b:
+        info = b.get_type_and_topic_info().topics
+    return int(info["/stereo/left/image_raw"].message_count) if "/stereo/left/image_raw" in info else 0
+
+
+def _node_processes(launch_pid: int) -> Dict[str, "object"]:
+    """{node name: psutil.Process} among roslaunch's children (their argv has __name:=<node>)."""
+    import psutil
+    out = {}
+    try:
+        for p in psutil.Process(launch_pid).children(recursive=True):
+            try:
+                cmd = " ".join(p.cmdline())
+            except psutil.Error:
+                continue
+            for n in NODES:
+                if "__name:=" + n in cmd:
+                    out[n] = p
+    except psutil.Error:
+        pass
+    return out
+
+
+class _Listener:
+    """Counts and latencies from the nodes' topics and diagnostics (callbacks on rospy threads)."""
+
+    def __init__(self):
+        import rospy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from geometry_msgs.msg import PoseStamped
+        from sensor_msgs.msg import PointCloud2
+        from mdr_slam_msgs.msg import TrackingState
+        self.lock = threading.Lock()
+        self.n_pose = 0
+        self.n_depth = 0
+        self.states: Dict[int, int] = {}
+        self.diag: Dict[str, Dict[str, str]] = {}
+        self.latency_s: List[float] = []
+        self.depth_latency_s: List[float] = []
+        self.t_pose: List[float] = []       # wall receipt times, for rates over the active window
+        self.t_depth: List[float] = []
+        self.integrated: List[tuple] = []   # (wall time, fusion's "clouds integrated")
+        self.subs = [
+            rospy.Subscriber("/mdr/pose", PoseStamped, self._pose, queue_size=100),
+            rospy.Subscriber("/mdr/depth/points", PointCloud2, self._depth, queue_size=10,
+                             buff_size=2 ** 26),
+            rospy.Subscriber("/mdr/tracking_state", TrackingState, self._state, queue_size=100),
+            rospy.Subscriber("/diagnostics", DiagnosticArray, self._diag, queue_size=20),
+        ]
+
+    def _pose(self, msg):
+        with self.lock:
+            self.n_pose += 1
+            self.t_pose.append(time.time())
+
+    def _depth(self, msg):
+        import rospy
+        lat = (rospy.Time.now() - msg.header.stamp).to_sec()
+        with self.lock:
+            self.n_depth += 1
+            self.t_depth.append(time.time())
+            if 0 <= lat < 60:
+                self.depth_latency_s.append(lat)
+
+    def _state(self, msg):
+        with self.lock:
+            self.states[msg.state] = self.states.get(msg.state, 0) + 1
+
+    def _diag(self, msg):
+        with self.lock:
+            for st in msg.status:
+                vals = {kv.key: kv.value for kv in st.values}
+                self.diag[st.name] = vals
+                for k, v in vals.items():
+                    try:
+                        f = float(v)
+                    except ValueError:
+                        continue
+                    if k.startswith("last latency stamp->map") and np.isfinite(f):
+                        self.latency_s.append(f)
+                    elif k == "clouds integrated":
+                        self.integrated.append((time.time(), f))
+
+    def diag_value(self, node: str, key: str, default=None):
+        with self.lock:
+            for name, vals in self.diag.items():
+                if node in name and key in vals:
+                    return vals[key]
+        return default
+
+
+def _stats(v) -> Dict[str, float]:
+    a = np.asarray(v, dtype=float)
+    if len(a) == 0:
+        return {"median": None, "max": None, "p90": None}
+    return {"median": round(float(np.median(a)), 2), "p90": round(float(np.percentile(a, 90)), 2),
+            "max": round(float(a.max()), 2)}
+
+
+def run_live(args) -> int:
+    import psutil
+    os.makedirs(args.out, exist_ok=True)
+    bag = os.path.abspath(args.bag)
+    dur_bag = _bag_duration(bag)
+    duration = args.live_duration or (dur_bag / args.rate + 15.0)
+    port = _free_port()
+    env = dict(os.environ, ROS_MASTER_URI="http://127.0.0.1:%d" % port, ROS_IP="127.0.0.1",
+               ROS_LOG_DIR=os.path.join(os.path.abspath(args.out), "roslog"))
+    env.pop("ROS_HOSTNAME", None)
+    os.environ.update(ROS_MASTER_URI=env["ROS_MASTER_URI"], ROS_IP="127.0.0.1",
+                      ROS_LOG_DIR=env["ROS_LOG_DIR"])
+    core = subprocess.Popen(["roscore", "-p", str(port)], env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, start_new_session=True)
+    launch = None
+    try:
+        import rosgraph
+        t0 = time.time()
+        while True:
+            try:
+                rosgraph.Master("/mdr_bench", master_uri=env["ROS_MASTER_URI"]).getPid()
+                break
+            except Exception:
+                if time.time() - t0 > 30:
+                    print("mdr bench: roscore did not start", file=sys.stderr)
+                    return 1
+                time.sleep(0.2)
+        pose_source = args.pose_source or "orb"
+        cmd = ["roslaunch", "mdr_slam", "mdr.launch", "bag:=" + bag, "rate:=%g" % args.rate,
+               "pose_source:=" + pose_source, "loop:=%s" % ("true" if args.loop else "false"),
+               "delay:=3.0"]
+        log = open(os.path.join(args.out, "launch.log"), "wb")
+        launch = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT,
+                                  start_new_session=True)
+        time.sleep(2.0)  # the launch sets /use_sim_time before this process becomes a node
+        import rospy
+        rospy.init_node("mdr_bench", anonymous=True, disable_signals=True)
+        listener = _Listener()
+        listener.t_start = time.time()
+        print("mdr bench: %s, %s poses, %.0f s (bag %.1f s at %gx%s)" % (
+            os.path.basename(bag), pose_source, duration, dur_bag, args.rate,
+            ", looped" if args.loop else ""), file=sys.stderr)
+        samples: List[dict] = []
+        procs: Dict[str, object] = {}
+        t_start = listener.t_start = time.time()
+        while time.time() - t_start < duration:
+            time.sleep(1.0)
+            for n, p in _node_processes(launch.pid).items():
+                if n not in procs or procs[n].pid != p.pid:   # new or respawned node
+                    p.cpu_percent(None)
+                    procs[n] = p
+            row = {"t": round(time.time() - t_start, 2)}
+            for n, p in procs.items():
+                try:
+                    row[n + ".cpu"] = p.cpu_percent(None)
+                    row[n + ".rss_mb"] = p.memory_info().rss / 1e6
+                except psutil.Error:
+                    pass
+            if len(row) > 1:
+                samples.append(row)
+            if not getattr(args, "quiet", False):
+                print("\r  t=%4.0fs  pose %d  depth %d  map %s points" % (
+                    row["t"], listener.n_pose, listener.n_depth,
+                    listener.diag_value("fusion", "map points", "?")), end="", file=sys.stderr,
+                    flush=True)
+            if launch.poll() is not None:
+                break
+        elapsed = time.time() - t_start
+        print("", file=sys.stderr)
+        result = _summarize(args, bag, listener, samples, elapsed, pose_source)
+    finally:
+        if launch is not None and launch.poll() is None:
+            os.killpg(launch.pid, signal.SIGINT)
+            try:
+                launch.wait(30)
+            except subprocess.TimeoutExpired:
+                os.killpg(launch.pid, signal.SIGKILL)
+        os.killpg(core.pid, signal.SIGINT)
+        try:
+            core.wait(10)
+        except subprocess.TimeoutExpired:
+            os.killpg(core.pid, signal.SIGKILL)
+    with open(os.path.join(args.out, "bench.json"), "w") as f:
+        json.dump(result, f, indent=2)
+    with open(os.path.join(args.out, "samples.json"), "w") as f:
+        json.dump(samples, f)
+    _plot(samples, os.path.join(args.out, "resources.png"))
+    md = _report_md(result)
+    with open(os.path.join(args.out, "report.md"), "w") as f:
+        f.write(md)
+    print(md)
+    return 0
+
+
+def _rate(times) -> float:
+    """Messages per second over the window they arrived in (idle time before and after the bag
+    does not dilute it)."""
+    if len(times) < 2:
+        return 0.0
+    return (len(times) - 1) / max(times[-1] - times[0], 1e-9)
+
+
+def _integration_rate(samples) -> float:
+    """Map integrations per second from the fusion node's cumulative counter while it grows."""
+    grow = [(t, c) for i, (t, c) in enumerate(samples) if i == 0 or c != samples[i - 1][1]]
+    if len(grow) < 2:
+        return 0.0
+    return (grow[-1][1] - grow[0][1]) / max(grow[-1][0] - grow[0][0], 1e-9)
+
+
+def _summarize(args, bag, lst: "_Listener", samples, elapsed, pose_source) -> dict:
+    def fdiag(node, key):
+        v = lst.diag_value(node, key)
+        try:
+            return float(v)
+        except (TypeError, ValueError):
+            return None
+    integrated = fdiag("fusion", "clouds integrated")
+    received = fdiag("depth", "received")
+    pairs = _stereo_pairs(bag)
+    r = OrderedDict()
+    r["bag"] = bag
+    r["pose_source"] = pose_source
+    r["rate"] = args.rate
+    r["loop"] = bool(args.loop)
+    r["elapsed_s"] = round(elapsed, 1)
+    r["frames_in"] = int(received) if received is not None else None
+    r["frames_in_bag"] = pairs
+    r["frames_tracked"] = int(lst.states.get(1, 0) + lst.states.get(3, 0)) if pose_source == "orb" \
+        else lst.n_pose
+    r["tracking_states"] = {{0: "NOT_INITIALIZED", 1: "OK", 2: "LOST", 3: "RELOCALIZED"}.get(k, k): v
+                            for k, v in lst.states.items()}
+    r["pose_hz"] = round(_rate(lst.t_pose), 2)
+    r["depth_hz"] = round(_rate(lst.t_depth), 2)
+    r["map_integration_hz"] = round(_integration_rate(lst.integrated), 2)
+    r["clouds_integrated"] = int(integrated) if integrated is not None else None
+    r["latency_ms"] = {k: (None if v is None else round(1e3 * v, 1))
+                       for k, v in _stats(lst.latency_s).items()}
+    r["depth_latency_ms"] = {k: (None if v is None else round(1e3 * v, 1))
+                             for k, v in _stats(lst.depth_latency_s).items()}
+    # resources while data flowed (from the first to the last depth cloud)
+    t0 = lst.t_depth[0] - lst.t_start if lst.t_depth else 0.0
+    t1 = lst.t_depth[-1] - lst.t_start if lst.t_depth else elapsed
+    samples = [s for s in samples if t0 <= s["t"] <= t1 + 1.0] or samples
+    r["depth_dropped"] = fdiag("depth", "dropped")
+    r["map_points"] = fdiag("fusion", "map points")
+    cpu, rss = OrderedDict(), OrderedDict()
+    tot_cpu = np.zeros(len(samples))
+    tot_rss = np.zeros(len(samples))
+    for n in NODES:
+        c = [s.get(n + ".cpu", np.nan) for s in samples]
+        m = [s.get(n + ".rss_mb", np.nan) for s in samples]
+        cpu[n] = _stats([x for x in c if np.isfinite(x)])
+        rss[n] = _stats([x for x in m if np.isfinite(x)])
+        tot_cpu += np.nan_to_num(np.asarray(c, dtype=float))
+        tot_rss += np.nan_to_num(np.asarray(m, dtype=float))
+    cpu["total"] = _stats(tot_cpu)
+    rss["total"] = _stats(tot_rss)
+    r["cpu_percent"] = cpu
+    r["rss_mb"] = rss
+    r["rss_mb_at_end"] = {n: (round(samples[-1].get(n + ".rss_mb", float("nan")), 1)
+                              if samples else None) for n in NODES}
+    return r
+
+
+def _report_md(r) -> str:
+    lines = ["# MDR-SLAM live benchmark", "",
+             "`%s`, %s poses, rosbag play at %gx%s, %.0f s." % (
+                 os.path.basename(r["bag"]), r["pose_source"], r["rate"],
+                 " (looped)" if r["loop"] else "", r["elapsed_s"]), "",
+             "| | |", "|---|---|",
+             "| map integrations per second | %s Hz |" % r["map_integration_hz"],
+             "| depth clouds per second | %s Hz |" % r["depth_hz"],
+             "| poses per second | %s Hz |" % r["pose_hz"],
+             "| stereo pairs received by depth / in the bag | %s / %s |" % (r["frames_in"],
+                                                                          r["frames_in_bag"]),
+             "| frames tracked | %s |" % r["frames_tracked"],
+             "| latency image stamp -> map, median / p90 | %s / %s ms |" % (
+                 r["latency_ms"]["median"], r["latency_ms"]["p90"]),
+             "| latency image stamp -> depth cloud, median / p90 | %s / %s ms |" % (
+                 r["depth_latency_ms"]["median"], r["depth_latency_ms"]["p90"]),
+             "", "CPU and RSS sampled once a second while data flowed:", "",
+             "| node | CPU % median / max | RSS MB median / max |", "|---|---|---|"]
+    for n in list(NODES) + ["total"]:
+        lines.append("| %s | %s / %s | %s / %s |" % (n, r["cpu_percent"][n]["median"],
+                                                     r["cpu_percent"][n]["max"],
+                                                     r["rss_mb"][n]["median"], r["rss_mb"][n]["max"]))
+    return "\n".join(lines) + "\n"
+
+
+def _plot(samples, path):
+    if not samples:
+        return
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    t = [s["t"] for s in samples]
+    fig, axes = plt.subplots(2, 1, figsize=(9, 6), dpi=100, sharex=True)
+    for n in NODES:
+        axes[0].plot(t, [s.get(n + ".cpu", np.nan) for s in samples], label=n)
+        axes[1].plot(t, [s.get(n + ".rss_mb", np.nan) for s in samples], label=n)
+    axes[0].set_ylabel("CPU %")
+    axes[1].set_ylabel("RSS (MB)")
+    axes[1].set_xlabel("time (s)")
+    axes[0].legend()
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
