@@ -14,6 +14,7 @@ a smeared map is worse than a gap.
 """
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import time
@@ -245,15 +246,9 @@ def frames_from_bag(path: str, topics: Optional[dict] = None, max_frames: Option
         camera = StereoCamera(first.left_info, first.right_info)
 
     def gen() -> Iterator[InputFrame]:
-        for f in _chain(first, it):
+        for f in itertools.chain([first], it):
             yield InputFrame(f.index, f.stamp, f.left, f.right, f.T_map_cam_gt)
     return camera, gen()
-
-
-def _chain(first, rest):
-    yield first
-    for x in rest:
-        yield x
 
 
 def frames_from_dataset(kind: str, path: str, max_frames: Optional[int] = None):

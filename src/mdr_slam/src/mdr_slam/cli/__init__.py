@@ -42,6 +42,12 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def mdr_command():
+    """argv that runs ``mdr`` with this very interpreter (subcommands that start other subcommands
+    use it, so they work without the catkin devel space on PATH too)."""
+    return [sys.executable, "-c", "import sys; from mdr_slam.cli import main; sys.exit(main())"]
+
+
 def _not_implemented(name):
     def run(args):
         print("mdr %s: not implemented yet" % name, file=sys.stderr)

@@ -26,6 +26,8 @@ import sys
 import time
 from collections import OrderedDict
 
+from . import mdr_command
+
 CONFIGS = OrderedDict([
     ("elas_only", {"temporal": False, "confidence": False}),
     ("temporal", {"temporal": True, "confidence": False}),
@@ -59,10 +61,6 @@ def add_parser(sub, name, help_text):
     p.set_defaults(func=run)
     return p
 
-
-def _mdr():
-    """The mdr command as this interpreter runs it (works without the catkin devel space too)."""
-    return [sys.executable, "-c", "import sys; from mdr_slam.cli import main; sys.exit(main())"]
 
 
 def _run_parallel(cmds, jobs):
@@ -104,7 +102,7 @@ def run_ablation(args) -> int:
     for scene in scenes:
         d = os.path.join(args.out, "sim_" + scene)
         if not os.path.exists(os.path.join(d, "gt_map.ply")):
-            sims.append(("sim_" + scene, _mdr() + ["sim", "--scene", scene, "--duration",
+            sims.append(("sim_" + scene, mdr_command() + ["sim", "--scene", scene, "--duration",
                                                    str(args.duration), "--seed", str(args.seed),
                                                    "--out", d, "--quiet"],
                          os.path.join(args.out, "sim_%s.log" % scene)))
@@ -118,7 +116,7 @@ def run_ablation(args) -> int:
     for scene in scenes:
         for c in configs:
             d = os.path.join(args.out, "%s_%s" % (scene, c))
-            argv = _mdr() + ["run", os.path.join(args.out, "sim_" + scene, "sequence.bag"),
+            argv = mdr_command() + ["run", os.path.join(args.out, "sim_" + scene, "sequence.bag"),
                              "--out", d, "--pose-source", args.pose_source or "groundtruth", "--quiet",
                              "--temporal", "on" if CONFIGS[c]["temporal"] else "off",
                              "--confidence", "on" if CONFIGS[c]["confidence"] else "off"]

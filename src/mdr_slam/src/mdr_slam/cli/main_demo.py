@@ -21,6 +21,8 @@ import time
 
 import numpy as np
 
+from . import mdr_command
+
 
 def add_parser(sub, name, help_text):
     p = sub.add_parser(name, help=help_text, description=__doc__,
@@ -37,9 +39,6 @@ def add_parser(sub, name, help_text):
     p.set_defaults(func=run)
     return p
 
-
-def _mdr():
-    return [sys.executable, "-c", "import sys; from mdr_slam.cli import main; sys.exit(main())"]
 
 
 def _step(text):
@@ -59,14 +58,14 @@ def run(args) -> int:
     if not os.path.exists(bag):
         _step("1/4 rendering the sample sequence (%s, %.0f s) into %s" % (args.scene, args.duration,
                                                                           sample))
-        r = subprocess.run(_mdr() + ["sim", "--scene", args.scene, "--duration", str(args.duration),
+        r = subprocess.run(mdr_command() + ["sim", "--scene", args.scene, "--duration", str(args.duration),
                                      "--scale", str(args.scale), "--out", sample])
         if r.returncode != 0:
             return r.returncode
     else:
         _step("1/4 sample sequence: %s (present)" % bag)
     _step("2/4 mapping it: pose (%s) -> depth (ELAS + temporal filter) -> fusion" % args.pose_source)
-    cmd = _mdr() + ["run", bag, "--out", demo, "--pose-source", args.pose_source]
+    cmd = mdr_command() + ["run", bag, "--out", demo, "--pose-source", args.pose_source]
     if args.max_frames:
         cmd += ["--max-frames", str(args.max_frames)]
     for kv in args.set:

@@ -11,6 +11,7 @@ milliseconds). The four runs of the paper's ablation (Table 2) differ only in --
 from __future__ import annotations
 
 import argparse
+import itertools
 import sys
 import time
 
@@ -90,7 +91,7 @@ def run(args) -> int:
     pipe = Pipeline(camera, cfg)
     t0 = time.perf_counter()
     n = 0
-    for f in _chain(first, frames):
+    for f in itertools.chain([first], frames):
         pipe.process(f)
         n += 1
         if not args.quiet and (n % 20 == 0):
@@ -107,8 +108,3 @@ def run(args) -> int:
         summary["map_points"], args.out))
     return 0
 
-
-def _chain(first, rest):
-    yield first
-    for x in rest:
-        yield x
