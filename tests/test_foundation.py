@@ -73,6 +73,26 @@ def test_launch_args_reach_the_nodes():
     assert yaml.safe_load(r.stdout)["/use_sim_time"] is False
 
 
+@pytest.mark.parametrize("preset", ["sample", "euroc", "kitti"])
+def test_dataset_presets_overlay_every_node(preset):
+    """config/<preset>/{pose,depth,fusion}.yaml exist and launch's preset:= loads them over the
+    defaults (the same overlay mdr run --preset applies)."""
+    import yaml
+    from mdr_slam.pipeline import config_dir, load_params
+    r = subprocess.run(["roslaunch", "--dump-params", "mdr_slam", "mdr.launch", "preset:=" + preset],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    params = yaml.safe_load(r.stdout)
+    for node in ("pose", "depth", "fusion"):
+        path = os.path.join(config_dir(), preset, node + ".yaml")
+        overlay = yaml.safe_load(open(path)) or {}
+        merged = load_params(node, preset)
+        for key, value in overlay.items():
+            assert params["/%s_node/%s" % (node, key)] == value == merged[key], (node, key)
+    if preset == "kitti":
+        assert params["/depth_node/max_depth"] == 30.0
+
+
 @pytest.mark.parametrize("kind,name", [
     ("msg", "TrackingState"), ("msg", "KeyFrame"), ("msg", "KeyFrameArray"),
     ("srv", "SaveMap"), ("srv", "LoadMap"), ("srv", "ExportMesh"), ("srv", "SaveTrajectory"),
