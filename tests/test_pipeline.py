@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 
@@ -136,6 +137,34 @@ def test_demo_leaves_map_report_and_pictures(tmp_path):
         coloured = (np.abs(img.astype(int) - 255).sum(axis=2) > 60).mean()
         assert coloured > 0.02, (name, coloured)
     assert "[mdr demo] done" in r.stdout
+    if shutil.which("rviz") and shutil.which("Xvfb"):
+        # rviz under Xvfb drew the map the fusion node published: height-coloured pixels in its 3D
+        # view (the grey background, grid and panels have no saturated colour)
+        from mdr_slam.viz import colourful_share
+        img = cv2.imread(os.path.join(demo, "map_rviz.png"))
+        assert img is not None, r.stdout
+        assert colourful_share(img[:, :, ::-1]) > 0.005, r.stdout
+        assert "map_rviz.png" in report
+
+
+def test_read_xwd_round_trip(tmp_path):
+    """Xvfb's frame buffer format (XWD, 32 bits per pixel, LSB first) reads back as RGB."""
+    import struct
+    from mdr_slam.viz import read_xwd
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 256, (7, 5, 3), dtype=np.uint8)
+    name = b"screen\0"
+    header = [100 + len(name), 7, 2, 24, 5, 7, 0, 0, 32, 0, 32, 32, 5 * 4, 4, 0xFF0000, 0xFF00, 0xFF,
+              8, 0, 0, 5, 7, 0, 0, 0]
+    bgra = np.concatenate([img[:, :, ::-1], np.zeros((7, 5, 1), np.uint8)], axis=2)
+    path = str(tmp_path / "s.xwd")
+    with open(path, "wb") as f:
+        f.write(struct.pack(">25I", *header) + name + bgra.tobytes())
+    assert np.array_equal(read_xwd(path), img)
+    with open(path, "r+b") as f:
+        f.truncate(150)
+    with pytest.raises(ValueError):
+        read_xwd(path)
 
 
 @pytest.mark.ros

@@ -150,3 +150,46 @@ def save_map_pictures(xyz: np.ndarray, out_prefix: str, values: Optional[np.ndar
     import cv2
     cv2.imwrite(persp, perspective_image(xyz, values, up_axis=up_axis)[:, :, ::-1])
     return top, persp
+
+
+def read_xwd(path: str) -> np.ndarray:
+    """An X Window Dump (what ``Xvfb -fbdir`` keeps its screen in) as an HxWx3 uint8 RGB image.
+
+    TrueColor ZPixmap dumps of 24 or 32 bits per pixel, either byte order (Xvfb's own format);
+    raises ValueError on anything else.
+    """
+    raw = np.fromfile(path, dtype=np.uint8)
+    if raw.size < 100:
+        raise ValueError("%s: not an XWD file (too short)" % path)
+    h = raw[:100].view(">u4")
+    header_size, version, fmt = int(h[0]), int(h[1]), int(h[2])
+    width, height, byte_order = int(h[4]), int(h[5]), int(h[7])
+    bpp, bytes_per_line = int(h[11]), int(h[12])
+    masks = [int(m) for m in h[14:17]]
+    ncolors = int(h[19])
+    if version != 7 or fmt != 2 or bpp not in (24, 32):
+        raise ValueError("%s: unsupported XWD (version %d, format %d, %d bits per pixel)"
+                         % (path, version, fmt, bpp))
+    start = header_size + 12 * ncolors
+    size = height * bytes_per_line
+    if raw.size < start + size:
+        raise ValueError("%s: truncated XWD (%d of %d bytes)" % (path, raw.size, start + size))
+    rows = raw[start:start + size].reshape(height, bytes_per_line)
+    step = bpp // 8
+    px = rows[:, :width * step].reshape(height, width, step).astype(np.uint32)
+    if step == 3:
+        px = np.concatenate([px, np.zeros((height, width, 1), np.uint32)], axis=2)
+    order = [0, 1, 2, 3] if byte_order == 0 else [3, 2, 1, 0]   # 0: LSBFirst
+    value = sum(px[:, :, i] << np.uint32(8 * k) for k, i in enumerate(order))
+    out = np.empty((height, width, 3), np.uint8)
+    for c, m in enumerate(masks):
+        shift = (m & -m).bit_length() - 1
+        out[:, :, c] = ((value & np.uint32(m)) >> np.uint32(shift)).astype(np.uint8)
+    return out
+
+
+def colourful_share(rgb: np.ndarray, min_saturation: int = 60) -> float:
+    """Share of pixels with a saturated colour (max - min channel >= ``min_saturation``): how much of
+    an rviz screenshot shows the height-coloured map rather than its grey background and grid."""
+    c = rgb.astype(np.int16)
+    return float(np.mean(c.max(axis=2) - c.min(axis=2) >= min_saturation))

@@ -5,6 +5,8 @@ a report and pictures under ``--out`` (default ``output/``):
     output/demo/map.ply     the fused global map (PLY: x y z intensity confidence ...)
     output/demo/report.md   what ran, how fast, and how good (map RMSE/completeness, ATE)
     output/demo/map_top.png, map_perspective.png, trajectory.png
+    output/demo/map_rviz.png  rviz (shipped config) showing the map the fusion node publishes,
+                            rendered under Xvfb (when rviz is installed; --no-rviz skips it)
 
 By default the sample's ground-truth poses place the depth (the launch file's
 ``pose_source:=groundtruth``), so the map shows what depth and fusion make of the sequence; with
@@ -40,6 +42,8 @@ def add_parser(sub, name, help_text):
                    help="image scale of the rendered sample (tests use 0.5)")
     p.add_argument("--set", action="append", default=[], metavar="NODE.KEY=VALUE",
                    help="parameter override for mdr run")
+    p.add_argument("--no-rviz", action="store_true",
+                   help="skip the rviz screenshot (taken under Xvfb when rviz is installed)")
     p.set_defaults(func=run)
     return p
 
@@ -93,12 +97,23 @@ def run(args) -> int:
     conf = cloud.get("confidence")
     top, persp = save_map_pictures(xyz, os.path.join(demo, "map"),
                                    title="MDR-SLAM map (%s sample)" % args.scene)
+    rviz_png = None
+    if not args.no_rviz:
+        from .rviz_shot import rviz_screenshot
+        try:
+            shot = rviz_screenshot(os.path.join(demo, "map.ply"), os.path.join(demo, "map_rviz.png"),
+                                   trajectory=os.path.join(demo, "trajectory.tum"))
+            rviz_png = shot["path"]
+            _step("rviz screenshot (fusion node publishing the saved map, rviz under Xvfb): %s"
+                  % rviz_png)
+        except RuntimeError as e:
+            _step("no rviz screenshot: %s" % str(e).splitlines()[0])
     traj_png = None
     if traj_res is not None:
         traj_png = plot_ate(traj_res, os.path.join(demo, "trajectory.png"),
                             title="trajectory vs ground truth (SE(3)-aligned)")
     report = _report(args, summary, m, traj_res, conf, time.time() - t_start,
-                     [top, persp] + ([traj_png] if traj_png else []))
+                     [top, persp] + [p for p in (rviz_png, traj_png) if p])
     with open(os.path.join(demo, "report.md"), "w") as f:
         f.write(report)
     print(report)
