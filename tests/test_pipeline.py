@@ -99,6 +99,20 @@ def test_bench_ablation_report(small_sim, tmp_path):
         assert c["rmse_m"] > 0 and 0 < c["completeness"] <= 1 and c["n_points"] > 0
     assert "| office | full |" in r.stdout
     assert os.path.getsize(str(out / "ablation.png")) > 5000
+    for c in res.values():
+        assert 0 < c["accuracy_5cm"] <= 1 and 0 < c["fscore"] <= 1
+
+
+def test_bench_ablation_with_estimated_poses(small_sim, tmp_path):
+    """Estimated poses: the tracker's map is aligned to the truth by its trajectory before scoring."""
+    out2 = tmp_path / "bench_orb"
+    out2.mkdir()
+    os.symlink(small_sim, str(out2 / "sim_office"))
+    r = _mdr("bench", "--ablation", "--out", str(out2), "--scenes", "office", "--max-frames", "40",
+             "--configs", "full", "--pose-source", "orb", *SMALL)
+    full = json.load(open(str(out2 / "ablation.json")))["results"]["office"]["full"]
+    assert full["frames_posed"] >= 35 and full["ate_m"] < 0.05, full
+    assert full["rmse_m"] < 0.1 and full["completeness"] > 0.02, full
 
 
 def test_map_pictures_show_the_map(tmp_path):
@@ -188,3 +202,13 @@ def test_bench_live_measures_the_running_nodes(small_sim, tmp_path):
     assert b["rss_mb"]["total"]["max"] >= b["rss_mb"]["fusion_node"]["max"]
     assert os.path.getsize(os.path.join(out, "resources.png")) > 5000
     assert "| fusion_node |" in open(os.path.join(out, "report.md")).read()
+    # long-run record: RSS slope per node and total, the map's size and rates per time window
+    for n in ("pose_node", "depth_node", "fusion_node", "total"):
+        assert isinstance(b["rss_slope_mb_per_min"][n], float), b["rss_slope_mb_per_min"]
+    assert b["map_points_max"] > 0 and b["timeline_window_s"] == 5.0, b
+    tl = b["timeline"]
+    assert len(tl) >= 4 and tl[0]["t0"] == 0 and all(a["t1"] == c["t0"] for a, c in zip(tl, tl[1:]))
+    assert sum(w["integrations_per_min"] for w in tl) > 0 and max(w["poses_per_min"] for w in tl) > 300
+    assert [w["map_points"] for w in tl if w["map_points"] is not None][-1] == b["map_points_max"]
+    assert all(w["rss_mb"]["total"] > 90 for w in tl if w["rss_mb"]["total"] is not None)
+    assert "Over time (5 s windows" in open(os.path.join(out, "report.md")).read()

@@ -89,8 +89,9 @@ def run(args) -> int:
 
 
 def run_ablation(args) -> int:
-    from ..eval import map_metrics
-    from ..io import cloud_xyz, read_cloud
+    import numpy as np
+    from ..eval import ate, map_metrics
+    from ..io import cloud_xyz, read_cloud, read_tum
     os.makedirs(args.out, exist_ok=True)
     scenes = [s for s in args.scenes.split(",") if s]
     configs = [c for c in args.configs.split(",") if c]
@@ -142,16 +143,30 @@ def run_ablation(args) -> int:
                 results[scene][c] = {"error": "mdr run failed, see %s.log" % d}
                 continue
             est = cloud_xyz(read_cloud(os.path.join(d, "map.ply")))
-            m = map_metrics(est, gt_xyz, threshold=args.threshold, gt_labels=gt.get("surface"))
             summ = json.load(open(os.path.join(d, "summary.json")))
+            traj = None
+            if (args.pose_source or "groundtruth") == "orb":
+                # estimated poses: the map is in the tracker's frame; move it into the ground
+                # truth's by the trajectory's SE(3) alignment (as evo aligns trajectories)
+                traj = ate(read_tum(os.path.join(d, "trajectory.tum")),
+                           read_tum(os.path.join(args.out, "sim_" + scene, "groundtruth.tum")), "se3")
+                al = traj.alignment
+                est = est @ np.asarray(al["rotation"]).T + np.asarray(al["translation"])
+            m = map_metrics(est, gt_xyz, threshold=args.threshold, gt_labels=gt.get("surface"))
+            prec, comp = m["accuracy"], m["completeness"]
             results[scene][c] = OrderedDict([
-                ("rmse_m", m["accuracy_rmse"]), ("completeness", m["completeness"]),
-                ("accuracy_5cm", m["accuracy"]), ("n_points", int(len(est))),
+                ("rmse_m", m["accuracy_rmse"]), ("completeness", comp),
+                ("accuracy_5cm", prec), ("fscore", 2 * prec * comp / max(prec + comp, 1e-12)),
+                ("n_points", int(len(est))),
                 ("per_label", {k: {"rmse_m": v.get("accuracy_rmse"),
                                    "completeness": v.get("completeness"),
                                    "n": v.get("n_estimate")}
                                for k, v in m.get("per_label", {}).items()}),
-                ("frames", summ["frames_in"]), ("timing", summ["timing"].get("frame"))])
+                ("frames", summ["frames_in"]), ("frames_posed", summ.get("frames_posed")),
+                ("timing", summ["timing"].get("frame"))])
+            if traj is not None:
+                results[scene][c]["ate_m"] = traj.stats["rmse"]
+                results[scene][c]["path_length_m"] = traj.stats["path_length"]
     report = {"scenes": scenes, "configs": configs, "duration_s": args.duration,
               "pose_source": args.pose_source or "groundtruth", "threshold_m": args.threshold,
               "results": results}
@@ -168,8 +183,11 @@ def run_ablation(args) -> int:
 def _markdown(report) -> str:
     lines = ["# Map ablation (paper Table 2), %s poses, completeness at %.0f cm" % (
         report["pose_source"], 100 * report["threshold_m"]), "",
-        "| scene | config | map RMSE (m) | completeness | points | RMSE low-texture | RMSE textured "
-        "| RMSE specular | RMSE vs ELAS-only |", "|---|---|---|---|---|---|---|---|---|"]
+        "Precision: share of map points within that distance of a true surface; F-score: harmonic "
+        "mean of precision and completeness.", "",
+        "| scene | config | map RMSE (m) | completeness | precision | F-score | points "
+        "| RMSE low-texture | RMSE textured | RMSE specular | RMSE vs ELAS-only | ATE |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for scene, res in report["results"].items():
         base = res.get("elas_only", {}).get("rmse_m")
         for c, r in res.items():
@@ -180,9 +198,12 @@ def _markdown(report) -> str:
             cell = lambda k: ("%.4f" % pl[k]["rmse_m"]) if pl.get(k, {}).get("rmse_m") is not None \
                 else "-"
             rel = ("%+.1f %%" % (100 * (r["rmse_m"] / base - 1))) if base else "-"
-            lines.append("| %s | %s | %.4f | %.1f %% | %d | %s | %s | %s | %s |" % (
-                scene, c, r["rmse_m"], 100 * r["completeness"], r["n_points"],
-                cell("low_texture"), cell("textured"), cell("specular"), rel))
+            at = ("%.3f m (%.2f %%)" % (r["ate_m"], 100 * r["ate_m"] / max(r["path_length_m"], 1e-9))
+                  if "ate_m" in r else "-")
+            lines.append("| %s | %s | %.4f | %.1f %% | %.1f %% | %.3f | %d | %s | %s | %s | %s | %s |" % (
+                scene, c, r["rmse_m"], 100 * r["completeness"], 100 * r["accuracy_5cm"],
+                r.get("fscore", float("nan")), r["n_points"],
+                cell("low_texture"), cell("textured"), cell("specular"), rel, at))
     return "\n".join(lines) + "\n"
 
 
