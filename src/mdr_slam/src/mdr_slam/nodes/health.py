@@ -1,0 +1,78 @@
+"""Process health for the nodes' /diagnostics: CPU %, RSS and an event-rate window (psutil).
+
+One :class:`ProcessHealth` per node; its :meth:`ProcessHealth.add_to` writes the keys every
+MDR-SLAM node reports (``cpu_percent``, ``rss_mb``, ``threads``) into a diagnostic_updater
+status, so monitors (rqt_robot_monitor, ``mdr bench``) read the same names from all three nodes.
+"""
+from __future__ import annotations
+
+import os
+import threading
+import time
+from collections import deque
+
+__all__ = ["ProcessHealth", "RateWindow", "rss_bytes"]
+
+
+def rss_bytes() -> int:
+    """Resident set size of this process in bytes (psutil, or /proc when psutil is missing)."""
+    try:
+        import psutil
+        return int(psutil.Process().memory_info().rss)
+    except ImportError:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+class ProcessHealth:
+    """CPU % (of one core, over the interval since the previous call, like ``top``) and RSS of
+    this process."""
+
+    def __init__(self):
+        self._proc = None
+        try:
+            import psutil
+            self._proc = psutil.Process()
+            self._proc.cpu_percent(None)     # starts the interval
+        except ImportError:
+            pass
+
+    def cpu_percent(self) -> float:
+        """CPU use since the last call (100 = one full core); NaN without psutil."""
+        return float(self._proc.cpu_percent(None)) if self._proc is not None else float("nan")
+
+    def rss_mb(self) -> float:
+        return rss_bytes() / 1e6
+
+    def add_to(self, stat) -> None:
+        """Add ``cpu_percent``, ``rss_mb`` and ``threads`` to a DiagnosticStatusWrapper."""
+        stat.add("cpu_percent", "%.1f" % self.cpu_percent())
+        stat.add("rss_mb", "%.1f" % self.rss_mb())
+        stat.add("threads", str(threading.active_count()))
+
+
+class RateWindow:
+    """Events per second over the last ``window`` seconds (monotonic clock), thread-safe."""
+
+    def __init__(self, window: float = 10.0):
+        self.window = float(window)
+        self._t = deque()
+        self._lock = threading.Lock()
+        self.t_start = time.monotonic()
+
+    def tick(self) -> None:
+        now = time.monotonic()
+        with self._lock:
+            self._t.append(now)
+            self._trim(now)
+
+    def _trim(self, now: float) -> None:
+        while self._t and now - self._t[0] > self.window:
+            self._t.popleft()
+
+    def rate(self) -> float:
+        now = time.monotonic()
+        with self._lock:
+            self._trim(now)
+            span = min(self.window, max(1e-6, now - self.t_start))
+            return len(self._t) / span

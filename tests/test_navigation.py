@@ -1,0 +1,313 @@
+"""Planners (issue 8 item 1): the grid planner (mdr_slam.nav), the move_base configuration, and
+the contract a planner relies on: the occupancy grid agrees with the map cloud (frame, resolution,
+origin), a path exists between free cells of a fused sample map, and tf map -> base_link exists
+at the stamps of the map and depth clouds on a live run. move_base itself is not in Debian."""
+from __future__ import annotations
+
+import os
+import subprocess
+import time
+
+import numpy as np
+import pytest
+import yaml
+
+from conftest import ROOT, wait_for
+from mdr_slam.nav import cell_to_world, grid_from_msg, plan_path, traversable, world_to_cell
+
+CONFIG = os.path.join(ROOT, "src", "mdr_slam", "config")
+
+
+def _check_path(plan, ok, start_cell, goal_cell):
+    """The path is 8-connected, starts and ends in the right cells and only uses allowed cells."""
+    c = plan.cells
+    assert tuple(c[0]) == tuple(start_cell) and tuple(c[-1]) == tuple(goal_cell)
+    steps = np.abs(np.diff(c, axis=0))
+    assert steps.max() <= 1 and steps.sum(1).min() >= 1
+    assert ok[c[:, 0], c[:, 1]].all()
+
+
+# ---------------------------------------------------------------------- (a) planner, known answers
+def test_wall_with_gap_goes_through_the_gap():
+    res, origin = 0.1, (-1.0, 2.0)
+    g = np.zeros((40, 60), np.int8)
+    g[:, 30] = 100
+    g[18:21, 30] = 0                      # a 3-cell (0.3 m) gap at rows 18..20
+    start, goal = cell_to_world((10, 5), origin, res), cell_to_world((10, 55), origin, res)
+    plans = {m: plan_path(g, start, goal, res, origin, method=m) for m in ("astar", "dijkstra")}
+    for p in plans.values():
+        _check_path(p, g == 0, (10, 5), (10, 55))
+        assert (p.cells[:, 1] == 30).sum() >= 1 and 18 <= p.cells[p.cells[:, 1] == 30, 0].min() <= 20
+    # known optimum: 8 diagonal steps down to row 18, straight through the gap, 8 back up:
+    # 16 diagonals + (50 - 16) straight cells
+    want = (34 + 16 * np.sqrt(2)) * res
+    assert plans["astar"].length == pytest.approx(want, abs=1e-9)
+    assert plans["dijkstra"].length == pytest.approx(want, abs=1e-9)
+    np.testing.assert_allclose(plans["astar"].xy[0], start)
+    # tuple form (as occupancy_grid returns it) gives the same plan
+    assert plan_path((g, origin, res), start, goal).length == pytest.approx(want)
+
+
+def test_no_path_when_blocked_and_bad_queries():
+    g = np.zeros((20, 20), np.int8)
+    g[:, 10] = 100
+    assert plan_path(g, (0.25, 0.25), (1.75, 0.25), 0.1, (0, 0)) is None
+    assert plan_path(g, (0.25, 0.25), (1.75, 0.25), 0.1, (0, 0), method="dijkstra") is None
+    # diagonal corner cutting between two obstacle cells is not a way through either
+    assert plan_path(np.array([[0, 100], [100, 0]], np.int8), (0.5, 0.5), (1.5, 1.5), 1.0, (0, 0)) is None
+    assert plan_path(g, (1.05, 0.25), (0.25, 0.25), 0.1, (0, 0)) is None   # start on an obstacle
+    with pytest.raises(ValueError, match="outside"):
+        plan_path(g, (-0.5, 0.25), (0.25, 0.25), 0.1, (0, 0))
+    with pytest.raises(ValueError, match="resolution"):
+        plan_path(g, (0.5, 0.25), (0.25, 0.25))
+
+
+def test_inflation_closes_a_narrow_gap_and_unknown_is_configurable():
+    res = 0.05
+    g = np.zeros((60, 60), np.int8)
+    g[:, 30] = 100
+    g[28:32, 30] = 0                      # 4 cells = 0.2 m gap
+    s, t = (0.3, 1.5), (2.7, 1.5)
+    assert plan_path(g, s, t, res, (0, 0), robot_radius=0.05) is not None   # 0.1 m robot fits
+    assert plan_path(g, s, t, res, (0, 0), robot_radius=0.15) is None       # 0.3 m robot does not
+    ok = traversable(g, res, 0.15)
+    assert not ok[:20, 27:34].any() and not ok[:, 30].any() and ok[:, :27].all() and ok[:20, 34:].all()
+    # unknown cells: blocked by default, traversable on request
+    u = np.zeros((10, 30), np.int8)
+    u[:, 10:20] = -1
+    assert plan_path(u, (0.25, 0.25), (2.75, 0.25), 0.1, (0, 0)) is None
+    p = plan_path(u, (0.25, 0.25), (2.75, 0.25), 0.1, (0, 0), unknown_traversable=True)
+    assert p is not None and p.length == pytest.approx(2.5)
+
+
+def test_world_cell_roundtrip_and_grid_message():
+    from nav_msgs.msg import OccupancyGrid
+    origin, res = (1.25, -3.5), 0.05
+    rc = np.array([[0, 0], [7, 3], [99, 41]])
+    xy = cell_to_world(rc, origin, res)
+    np.testing.assert_array_equal(world_to_cell(xy, origin, res), rc)
+    np.testing.assert_array_equal(world_to_cell(np.array(origin) + [0.0999, 0.0001], origin, res), [0, 1])
+    m = OccupancyGrid()
+    m.info.resolution, m.info.width, m.info.height = res, 4, 3
+    m.info.origin.position.x, m.info.origin.position.y = origin
+    m.info.origin.orientation.w = 1.0
+    m.data = list(range(12))
+    g, o, r = grid_from_msg(m)
+    assert g.shape == (3, 4) and g[1, 0] == 4 and o == origin and r == res
+    m.info.origin.orientation.z, m.info.origin.orientation.w = 0.7071, 0.7071
+    with pytest.raises(ValueError, match="rotated"):
+        grid_from_msg(m)
+
+
+def test_costmap_parameters_match_the_fusion_grid():
+    fusion = yaml.safe_load(open(os.path.join(CONFIG, "fusion.yaml")))
+    nav = os.path.join(CONFIG, "navigation")
+    common = yaml.safe_load(open(os.path.join(nav, "costmap_common_params.yaml")))
+    glob = yaml.safe_load(open(os.path.join(nav, "global_costmap_params.yaml")))["global_costmap"]
+    local = yaml.safe_load(open(os.path.join(nav, "local_costmap_params.yaml")))["local_costmap"]
+    mb = yaml.safe_load(open(os.path.join(nav, "move_base.yaml")))
+    assert common["static_layer"]["map_topic"] == "/mdr/map/grid"
+    assert glob["global_frame"] == fusion["map_frame"] and glob["robot_base_frame"] == "base_link"
+    assert glob["resolution"] == fusion["grid_resolution"]
+    assert local["global_frame"] == "odom" and local["rolling_window"]
+    ol = common["obstacle_layer"]
+    srcs = {ol[s]["topic"]: ol[s] for s in ol["observation_sources"].split()}
+    assert srcs["/mdr/map/points"]["marking"] and not srcs["/mdr/map/points"]["clearing"]
+    for s in srcs.values():
+        assert s["min_obstacle_height"] == fusion["grid_z_min"]
+        assert s["max_obstacle_height"] == fusion["grid_z_max"]
+    assert fusion["grid_up_axis"] == "z"         # the costmaps measure heights along map z
+    names = [p["name"] for p in glob["plugins"]]
+    assert names == ["static_layer", "obstacle_layer", "inflation_layer"]
+    assert mb["base_global_planner"] and mb["NavfnROS"]["allow_unknown"]
+
+
+def test_navigation_launch_parses_with_and_without_move_base():
+    def nodes(*args):
+        r = subprocess.run(["roslaunch", "--nodes", os.path.join(ROOT, "launch", "navigation.launch")]
+                           + list(args), capture_output=True, text=True, timeout=60)
+        assert r.returncode == 0, r.stderr
+        return set(r.stdout.split())
+    assert nodes() == {"/pose_node", "/depth_node", "/fusion_node"}
+    assert nodes("move_base:=true", "bag:=/x.bag") == {"/pose_node", "/depth_node", "/fusion_node",
+                                                       "/bag_player", "/move_base"}
+
+
+# ---------------------------------------------------------------------- (b) the fused sample map
+@pytest.fixture(scope="module")
+def nav_sim(tmp_path_factory):
+    """The office loop at half resolution and 10 Hz (as tests/test_pipeline.py's small_sim)."""
+    from mdr_slam.sim import generate
+    d = str(tmp_path_factory.mktemp("nav_office"))
+    generate(d, scene="office", duration=30.0, seed=1, rate=10.0, scale=0.5, workers=2,
+             map_cell=0.02)
+    return d
+
+
+@pytest.fixture(scope="module")
+def fused(nav_sim):
+    """The offline pipeline (ground-truth poses) over 20 s of the loop: the VoxelMap, the
+    fusion parameters and the camera positions."""
+    from mdr_slam.pipeline import Pipeline, PipelineConfig, frames_from_bag, load_params
+    cam, frames = frames_from_bag(os.path.join(nav_sim, "sequence.bag"), max_frames=200)
+    pl = Pipeline(cam, PipelineConfig(pose_source="groundtruth", depth_params={"tau": 0.02}))
+    for f in frames:
+        pl.process(f)
+    return pl.map, load_params("fusion"), np.array([T[:3, 3] for _, T in pl.poses])
+
+
+def _grid_message(xyz, p):
+    """The grid as the fusion node publishes it (same functions, same parameters)."""
+    from nav_msgs.msg import OccupancyGrid
+    from mdr_slam.conversions import matrix_to_pose
+    from mdr_slam.fusion import grid_origin_T, occupancy_grid
+    data, origin, res = occupancy_grid(xyz, p["grid_resolution"], p["grid_z_min"], p["grid_z_max"],
+                                       p["grid_up_axis"], p["grid_free_band"])
+    m = OccupancyGrid()
+    m.header.frame_id = p["map_frame"]
+    m.info.resolution = res
+    m.info.height, m.info.width = data.shape
+    m.info.origin = matrix_to_pose(grid_origin_T(origin, p["grid_up_axis"], p["grid_z_min"]))
+    m.data = data.reshape(-1).tolist()
+    return m
+
+
+def test_grid_agrees_with_the_map_cloud_and_plans_a_path(fused):
+    from scipy import ndimage
+    from scipy.spatial import cKDTree
+    vmap, p, traj = fused
+    c = vmap.to_cloud(p["grid_min_confidence"])
+    xyz = np.stack([c["x"], c["y"], c["z"]], 1).astype(np.float64)
+    msg = _grid_message(xyz, p)
+    g, origin, res = grid_from_msg(msg)
+    H, W = g.shape
+    assert msg.header.frame_id == p["map_frame"] and res == pytest.approx(p["grid_resolution"])
+    assert msg.info.origin.position.z == pytest.approx(p["grid_z_min"])
+    # origin on the global lattice of the resolution: successive grids line up cell for cell
+    assert np.allclose(np.array(origin) / res, np.round(np.array(origin) / res), atol=1e-6)
+    band = xyz[(xyz[:, 2] >= p["grid_z_min"]) & (xyz[:, 2] <= p["grid_z_max"])]
+    floor = xyz[(xyz[:, 2] < p["grid_z_min"]) & (xyz[:, 2] >= p["grid_z_min"] - p["grid_free_band"])]
+    assert len(band) > 1000 and len(floor) > 50
+    # every obstacle-band point lies inside the grid, in an occupied cell; every occupied cell
+    # holds band points; the floor points lie in free or occupied cells (never unknown)
+    rc = world_to_cell(band[:, :2], origin, res)
+    assert (rc >= 0).all() and (rc[:, 0] < H).all() and (rc[:, 1] < W).all()
+    assert (g[rc[:, 0], rc[:, 1]] == 100).all()
+    assert len(np.unique(rc[:, 0] * W + rc[:, 1])) == (g == 100).sum()
+    fc = world_to_cell(floor[:, :2], origin, res)
+    assert (fc >= 0).all() and (fc[:, 0] < H).all() and (fc[:, 1] < W).all()
+    assert (g[fc[:, 0], fc[:, 1]] >= 0).all()
+    lo, hi = np.array(origin), np.array(origin) + res * np.array([W, H])
+    used = np.vstack([band, floor])[:, :2]
+    assert (used.min(0) >= lo - 1e-9).all() and (used.max(0) <= hi + 1e-9).all()
+    # where the camera went there is no obstacle (no phantom obstacles on the robot's own route)
+    tc = world_to_cell(traj[:, :2], origin, res)
+    inside = (tc >= 0).all(1) & (tc[:, 0] < H) & (tc[:, 1] < W)
+    assert inside.mean() > 0.9
+    assert (g[tc[inside, 0], tc[inside, 1]] != 100).all()
+
+    # A robot of radius 0.15 m, unknown cells allowed (navfn allow_unknown, as move_base.yaml):
+    # from the start of the trajectory to its far side, and to every 20th pose of it
+    radius = 0.15
+    ok = traversable(g, res, radius, unknown_traversable=True)
+    occ_xy = cell_to_world(np.argwhere(g == 100), origin, res)
+    start = traj[0, :2]
+    far = traj[np.argmax(np.linalg.norm(traj[:, :2] - start, axis=1)), :2]
+    t0 = time.perf_counter()
+    plan = plan_path((g, origin, res), start, far, robot_radius=radius, unknown_traversable=True)
+    t_astar = time.perf_counter() - t0
+    assert plan is not None
+    _check_path(plan, ok, world_to_cell(start, origin, res), world_to_cell(far, origin, res))
+    d, _ = cKDTree(occ_xy).query(plan.xy)   # independent clearance check: no cell within radius
+    assert d.min() > radius
+    dij = plan_path((g, origin, res), start, far, robot_radius=radius, unknown_traversable=True,
+                    method="dijkstra")
+    assert dij.length == pytest.approx(plan.length, abs=1e-9)
+    assert plan.length >= np.linalg.norm(plan.xy[-1] - plan.xy[0]) - 1e-9
+    for q in traj[::20, :2]:
+        assert plan_path((g, origin, res), start, q, robot_radius=radius,
+                         unknown_traversable=True) is not None, q
+
+    # Strictly on mapped floor: the two farthest-apart cells of the largest free component
+    free = g == 0
+    lab, n = ndimage.label(free)          # 4-connected: reachable without cutting corners
+    assert n >= 1
+    big = np.argmax(ndimage.sum(free, lab, range(1, n + 1))) + 1
+    cells = np.argwhere(lab == big)
+    a = cells[0]
+    b = cells[np.argmax(np.linalg.norm(cells - a, axis=1))]
+    a = cells[np.argmax(np.linalg.norm(cells - b, axis=1))]
+    strict = plan_path((g, origin, res), cell_to_world(a, origin, res), cell_to_world(b, origin, res))
+    assert strict is not None and len(cells) >= 20
+    _check_path(strict, free, a, b)
+    assert (g[strict.cells[:, 0], strict.cells[:, 1]] == 0).all()
+    print("fused sample map: grid %dx%d at %s, %d occupied, %d free cells; start->far path %.2f m "
+          "(straight %.2f m, A* %.1f ms); on mapped floor %.2f m over %d free cells"
+          % (W, H, origin, (g == 100).sum(), free.sum(), plan.length, np.linalg.norm(far - start),
+             1e3 * t_astar, strict.length, len(cells)))
+
+
+# ---------------------------------------------------------------------- (c) live run: tf and frames
+@pytest.mark.ros
+def test_live_tf_at_cloud_stamps_and_grid_frame(nav_sim, rospy_client, start_process, tmp_path):
+    rospy = rospy_client
+    import tf2_ros
+    from nav_msgs.msg import OccupancyGrid
+    from sensor_msgs.msg import PointCloud2
+    fusion = yaml.safe_load(open(os.path.join(CONFIG, "fusion.yaml")))
+    fusion.update(map_path=str(tmp_path / "map.ply"), autosave=False, publish_rate=2.0)
+    fparams = tmp_path / "fusion.yaml"
+    fparams.write_text(yaml.safe_dump(fusion))
+    buf = tf2_ros.Buffer(cache_time=rospy.Duration(120.0))
+    tf2_ros.TransformListener(buf)
+    maps, grids, depths = [], [], []
+    subs = [rospy.Subscriber("/mdr/map/points", PointCloud2, maps.append, queue_size=5),
+            rospy.Subscriber("/mdr/map/grid", OccupancyGrid, grids.append, queue_size=5),
+            rospy.Subscriber("/mdr/depth/points", PointCloud2, depths.append, queue_size=5)]
+    launch = start_process(["roslaunch", os.path.join(ROOT, "launch", "navigation.launch"),
+                            "bag:=" + os.path.join(nav_sim, "sequence.bag"),
+                            "pose_source:=groundtruth", "respawn:=false", "delay:=3", "rate:=2",
+                            "fusion_params:=%s" % fparams], "navigation_launch")
+    try:
+        def n_occupied(gm):
+            return int((np.asarray(gm.data, np.int8) == 100).sum())
+        got = wait_for(lambda: len(maps) >= 3 and len(depths) >= 5 and len(grids) >= 3
+                       and n_occupied(grids[-1]) >= 50, 45, 0.5)
+        assert got, "maps %d grids %d depth %d\n%s" % (len(maps), len(grids), len(depths),
+                                                        launch.output()[-3000:])
+
+        def tf_at(msg):
+            stamp = msg.header.stamp
+            ok = wait_for(lambda: buf.can_transform("map", "base_link", stamp), 5.0, 0.05)
+            return buf.lookup_transform("map", "base_link", stamp) if ok else None
+        for kind, msgs in (("map", maps[:3]), ("depth", depths[:5])):
+            for m in msgs:
+                assert tf_at(m) is not None, "no tf map -> base_link at the %s cloud stamp %.3f" % (
+                    kind, m.header.stamp.to_sec())
+                assert buf.can_transform("map", m.header.frame_id, m.header.stamp)
+        for gm in grids:
+            assert gm.header.frame_id == maps[0].header.frame_id == fusion["map_frame"]
+            assert gm.info.resolution == pytest.approx(fusion["grid_resolution"])
+        # a grid and the cloud of the same publish (same stamp) agree cell for cell
+        from mdr_slam.conversions import pointcloud2_to_xyz
+        pairs = [(gm, m) for gm in grids for m in maps if gm.header.stamp == m.header.stamp]
+        assert pairs
+        gm, m = pairs[-1]
+        g, origin, res = grid_from_msg(gm)
+        xyz = pointcloud2_to_xyz(m)
+        band = xyz[(xyz[:, 2] >= fusion["grid_z_min"]) & (xyz[:, 2] <= fusion["grid_z_max"])]
+        rc = world_to_cell(band[:, :2], origin, res)
+        inside = (rc >= 0).all(1) & (rc[:, 0] < g.shape[0]) & (rc[:, 1] < g.shape[1])
+        hit = np.zeros(g.shape, bool)
+        hit[rc[inside, 0], rc[inside, 1]] = True
+        occ = g == 100
+        assert occ.sum() >= 50
+        print("live: %d map clouds, %d grids, %d depth clouds; grid %dx%d, %d occupied cells, "
+              "%.1f %% of them hold a map-cloud point, %.1f %% of band points inside the grid"
+              % (len(maps), len(grids), len(depths), g.shape[1], g.shape[0], occ.sum(),
+                 100 * hit[occ].mean(), 100 * inside.mean()))
+        assert hit[occ].mean() > 0.95
+    finally:
+        for s in subs:
+            s.unregister()
+        launch.stop()
