@@ -73,11 +73,13 @@ class _Listener:
         self.n_depth = 0
         self.states: Dict[int, int] = {}
         self.diag: Dict[str, Dict[str, str]] = {}
+        self.diag_time: Dict[str, float] = {}   # wall time of each status's last report
         self.latency_s: List[float] = []
         self.depth_latency_s: List[float] = []
         self.t_pose: List[float] = []       # wall receipt times, for rates over the active window
         self.t_depth: List[float] = []
         self.integrated: List[tuple] = []   # (wall time, fusion's "clouds integrated")
+        self.map_points: List[tuple] = []   # (wall time, fusion's "map points")
         self.subs = [
             rospy.Subscriber("/mdr/pose", PoseStamped, self._pose, queue_size=100),
             rospy.Subscriber("/mdr/depth/points", PointCloud2, self._depth, queue_size=10,
@@ -109,6 +111,7 @@ class _Listener:
             for st in msg.status:
                 vals = {kv.key: kv.value for kv in st.values}
                 self.diag[st.name] = vals
+                self.diag_time[st.name] = time.time()
                 for k, v in vals.items():
                     try:
                         f = float(v)
@@ -118,6 +121,8 @@ class _Listener:
                         self.latency_s.append(f)
                     elif k == "clouds integrated":
                         self.integrated.append((time.time(), f))
+                    elif k == "map points" and "fusion" in st.name:
+                        self.map_points.append((time.time(), f))
 
     def diag_value(self, node: str, key: str, default=None):
         with self.lock:
@@ -190,10 +195,20 @@ def run_live(args) -> int:
             for n, p in procs.items():
                 try:
                     row[n + ".cpu"] = p.cpu_percent(None)
-                    row[n + ".rss_mb"] = p.memory_info().rss / 1e6
+                    mi = p.memory_info()
+                    row[n + ".rss_mb"] = mi.rss / 1e6
+                    # anonymous memory (heap, arrays): RSS without resident file pages (shared
+                    # libraries), which the kernel may drop under memory pressure at any time
+                    row[n + ".anon_mb"] = (mi.rss - getattr(mi, "shared", 0)) / 1e6
                 except psutil.Error:
                     pass
-            if len(row) > 1:
+            has_nodes = len(row) > 1
+            with listener.lock:       # the map's size next to the memory, for the long-run plot
+                if listener.map_points:
+                    row["map_points"] = listener.map_points[-1][1]
+                if listener.integrated:
+                    row["clouds_integrated"] = listener.integrated[-1][1]
+            if has_nodes:
                 samples.append(row)
             if not getattr(args, "quiet", False):
                 print("\r  t=%4.0fs  pose %d  depth %d  map %s points" % (
@@ -221,7 +236,7 @@ def run_live(args) -> int:
         json.dump(result, f, indent=2)
     with open(os.path.join(args.out, "samples.json"), "w") as f:
         json.dump(samples, f)
-    _plot(samples, os.path.join(args.out, "resources.png"))
+    _plot(samples, os.path.join(args.out, "resources.png"), result.get("timeline"))
     md = _report_md(result)
     with open(os.path.join(args.out, "report.md"), "w") as f:
         f.write(md)
@@ -243,6 +258,81 @@ def _integration_rate(samples) -> float:
     if len(grow) < 2:
         return 0.0
     return (grow[-1][1] - grow[0][1]) / max(grow[-1][0] - grow[0][0], 1e-9)
+
+
+def _slope_per_min(t, y):
+    """Least-squares slope of y(t) (t in s) per minute over the second half of the time span
+    (after start-up and the first pass over the scene), or None with too few samples."""
+    t = np.asarray(t, dtype=float)
+    y = np.asarray(y, dtype=float)
+    ok = np.isfinite(t) & np.isfinite(y)
+    t, y = t[ok], y[ok]
+    if len(t) < 4:
+        return None
+    late = t >= 0.5 * (t.min() + t.max())
+    if late.sum() < 3 or np.ptp(t[late]) <= 0:
+        return None
+    return round(float(np.polyfit(t[late], y[late], 1)[0]) * 60.0, 3)
+
+
+def _increments(series):
+    """Per-report increments of a cumulative counter (t, value); a drop means the node restarted
+    and counts from zero again."""
+    v = np.asarray([c for _, c in series], dtype=float)
+    if len(v) == 0:
+        return v
+    d = np.diff(v, prepend=v[0])
+    return np.where(d < 0, v, d)
+
+
+def timeline_window(elapsed: float) -> float:
+    """Per-minute windows for long runs; about six windows for short ones."""
+    return 60.0 if elapsed >= 300 else float(max(5.0, round(elapsed / 6.0)))
+
+
+def _timeline(lst: "_Listener", samples, elapsed: float, window: float) -> List[dict]:
+    """Rates (per minute), map size and per-node resources in consecutive windows of the run."""
+    ts = lst.t_start
+    pose = np.sort(np.asarray(lst.t_pose, dtype=float) - ts)
+    depth = np.sort(np.asarray(lst.t_depth, dtype=float) - ts)
+    it_t = np.asarray([t for t, _ in lst.integrated], dtype=float) - ts
+    it_inc = _increments(lst.integrated)
+    mp_t = np.asarray([t for t, _ in lst.map_points], dtype=float) - ts
+    mp_v = np.asarray([v for _, v in lst.map_points], dtype=float)
+    st = np.asarray([s["t"] for s in samples], dtype=float)
+    rows = []
+    for a in np.arange(0.0, elapsed, window):      # a handful of windows, not per sample
+        b = min(a + window, elapsed)
+        if b - a < 1.0:
+            break
+        per_min = 60.0 / (b - a)
+        row = OrderedDict(t0=round(float(a), 1), t1=round(float(b), 1))
+        row["poses_per_min"] = round(float(np.count_nonzero((pose >= a) & (pose < b))) * per_min, 1)
+        row["depth_clouds_per_min"] = round(
+            float(np.count_nonzero((depth >= a) & (depth < b))) * per_min, 1)
+        row["integrations_per_min"] = round(
+            float(it_inc[(it_t >= a) & (it_t < b)].sum()) * per_min, 1)
+        seen = mp_v[mp_t < b]
+        row["map_points"] = int(seen[-1]) if len(seen) else None
+        inw = [samples[i] for i in np.nonzero((st >= a) & (st < b))[0]]
+        rss, cpu = OrderedDict(), OrderedDict()
+        anon = OrderedDict()
+        for n in NODES:
+            m = [x[n + ".rss_mb"] for x in inw if n + ".rss_mb" in x]
+            h = [x[n + ".anon_mb"] for x in inw if n + ".anon_mb" in x]
+            c = [x[n + ".cpu"] for x in inw if n + ".cpu" in x]
+            rss[n] = round(float(np.mean(m)), 1) if m else None
+            anon[n] = round(float(np.mean(h)), 1) if h else None
+            cpu[n] = round(float(np.mean(c)), 1) if c else None
+        for key, d in (("rss_mb", rss), ("anon_mb", anon)):
+            full = [sum(x[n + "." + key] for n in NODES) for x in inw
+                    if all(n + "." + key in x for n in NODES)]
+            d["total"] = round(float(np.mean(full)), 1) if full else None
+        row["rss_mb"] = rss
+        row["anon_mb"] = anon
+        row["cpu_percent"] = cpu
+        rows.append(row)
+    return rows
 
 
 def _summarize(args, bag, lst: "_Listener", samples, elapsed, pose_source) -> dict:
@@ -278,6 +368,7 @@ def _summarize(args, bag, lst: "_Listener", samples, elapsed, pose_source) -> di
     # resources while data flowed (from the first to the last depth cloud)
     t0 = lst.t_depth[0] - lst.t_start if lst.t_depth else 0.0
     t1 = lst.t_depth[-1] - lst.t_start if lst.t_depth else elapsed
+    all_samples = samples
     samples = [s for s in samples if t0 <= s["t"] <= t1 + 1.0] or samples
     r["depth_dropped"] = fdiag("depth", "dropped")
     r["map_points"] = fdiag("fusion", "map points")
@@ -297,6 +388,28 @@ def _summarize(args, bag, lst: "_Listener", samples, elapsed, pose_source) -> di
     r["rss_mb"] = rss
     r["rss_mb_at_end"] = {n: (round(samples[-1].get(n + ".rss_mb", float("nan")), 1)
                               if samples else None) for n in NODES}
+    # long runs: memory growth (least squares over the second half of the active window, MB per
+    # minute) next to the map's growth, and rates/resources per window over the whole run
+    t = [s["t"] for s in samples]
+    for kind in ("rss", "anon"):
+        slope = OrderedDict()
+        for n in NODES:
+            slope[n] = _slope_per_min(t, [s.get(n + "." + kind + "_mb", np.nan) for s in samples])
+        full = [s for s in samples if all(n + "." + kind + "_mb" in s for n in NODES)]
+        slope["total"] = _slope_per_min([s["t"] for s in full],
+                                        [sum(s[n + "." + kind + "_mb"] for n in NODES) for s in full])
+        r[kind + "_slope_mb_per_min"] = slope
+    r["rss_slope_fit_s"] = ([round(0.5 * (t[0] + t[-1]), 1), round(t[-1], 1)]
+                            if len(t) >= 2 else None)
+    mp = [(tt - lst.t_start, v) for tt, v in lst.map_points if t0 <= tt - lst.t_start <= t1 + 1.0]
+    r["map_points_slope_per_min"] = _slope_per_min([a for a, _ in mp], [v for _, v in mp])
+    r["map_points_max"] = int(max(v for _, v in lst.map_points)) if lst.map_points else None
+    r["timeline_window_s"] = timeline_window(elapsed)
+    r["timeline"] = _timeline(lst, all_samples, elapsed, r["timeline_window_s"])
+    # seconds since each status last reported at the end: a stale one means that node's
+    # diagnostics stopped (its counters above, e.g. map points, are then frozen)
+    r["diagnostics_age_s"] = {k: round(lst.t_start + elapsed - v, 1)
+                              for k, v in sorted(lst.diag_time.items())}
     return r
 
 
@@ -322,23 +435,59 @@ def _report_md(r) -> str:
         lines.append("| %s | %s / %s | %s / %s |" % (n, r["cpu_percent"][n]["median"],
                                                      r["cpu_percent"][n]["max"],
                                                      r["rss_mb"][n]["median"], r["rss_mb"][n]["max"]))
+    fit = r.get("rss_slope_fit_s")
+    if fit:
+        lines += ["", "Memory growth: least-squares RSS slope over the second half of that window "
+                  "(%s to %s s); the map size beside it, since the fusion node's memory should "
+                  "follow the mapped surface, not the run's length:" % (fit[0], fit[1]), "",
+                  "| | RSS MB per minute | anonymous (heap) MB per minute |", "|---|---|---|"]
+        for n in list(NODES) + ["total"]:
+            lines.append("| %s | %s | %s |" % (n, r["rss_slope_mb_per_min"][n],
+                                                r["anon_slope_mb_per_min"][n]))
+        lines.append("| map points (max %s) | %s points per minute | |" % (
+            r["map_points_max"], r["map_points_slope_per_min"]))
+    stale = {k: v for k, v in r.get("diagnostics_age_s", {}).items() if v > 10}
+    if stale:
+        lines += ["", "WARNING: diagnostics stopped before the end (seconds since the last "
+                  "report: %s); their counters (map points, integrations) are frozen from then."
+                  % ", ".join("%s %s" % kv for kv in stale.items())]
+    if r.get("timeline"):
+        lines += ["", "Over time (%g s windows; rates per minute):" % r["timeline_window_s"], "",
+                  "| t (s) | poses | depth clouds | integrations | map points | RSS MB pose / "
+                  "depth / fusion / total |", "|---|---|---|---|---|---|"]
+        for w in r["timeline"]:
+            lines.append("| %g-%g | %s | %s | %s | %s | %s / %s / %s / %s |" % (
+                w["t0"], w["t1"], w["poses_per_min"], w["depth_clouds_per_min"],
+                w["integrations_per_min"], w["map_points"],
+                *[w["rss_mb"][n] for n in list(NODES) + ["total"]]))
     return "\n".join(lines) + "\n"
 
 
-def _plot(samples, path):
+def _plot(samples, path, timeline=None):
     if not samples:
         return
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     t = [s["t"] for s in samples]
-    fig, axes = plt.subplots(2, 1, figsize=(9, 6), dpi=100, sharex=True)
+    fig, axes = plt.subplots(3, 1, figsize=(9, 8.5), dpi=100, sharex=True)
     for n in NODES:
         axes[0].plot(t, [s.get(n + ".cpu", np.nan) for s in samples], label=n)
-        axes[1].plot(t, [s.get(n + ".rss_mb", np.nan) for s in samples], label=n)
+        line, = axes[1].plot(t, [s.get(n + ".rss_mb", np.nan) for s in samples], label=n)
+        axes[1].plot(t, [s.get(n + ".anon_mb", np.nan) for s in samples], "--",
+                     color=line.get_color())
     axes[0].set_ylabel("CPU %")
-    axes[1].set_ylabel("RSS (MB)")
-    axes[1].set_xlabel("time (s)")
+    axes[1].set_ylabel("RSS, dashed: anonymous (MB)")
+    axes[2].plot(t, [s.get("map_points", np.nan) for s in samples], color="k", label="map points")
+    axes[2].set_ylabel("map points")
+    if timeline:
+        ax = axes[2].twinx()
+        ax.step([w["t0"] for w in timeline] + [timeline[-1]["t1"]],
+                [w["integrations_per_min"] for w in timeline] +
+                [timeline[-1]["integrations_per_min"]], where="post", color="tab:red",
+                label="integrations / min")
+        ax.set_ylabel("integrations / min", color="tab:red")
+    axes[2].set_xlabel("time (s)")
     axes[0].legend()
     fig.tight_layout()
     fig.savefig(path)
