@@ -123,6 +123,15 @@ def start_process(roscore, tmp_path):
     yield start
     for p in procs:
         p.stop()
+    # a launch file with a bag sets /use_sim_time on the shared master: later tests' nodes would
+    # wait for a /clock nobody publishes
+    import rosgraph
+    try:
+        master = rosgraph.Master("/pytest_cleanup", master_uri=roscore)
+        if master.hasParam("/use_sim_time"):
+            master.deleteParam("/use_sim_time")
+    except Exception:
+        pass
 
 
 def wait_for(predicate, timeout=20.0, period=0.05):

@@ -27,7 +27,7 @@ from .camera import CameraModel
 from .geometry import make_T, quat_to_R, R_to_quat
 
 __all__ = [
-    "ConversionError", "image_to_numpy", "numpy_to_image", "camera_info_to_model",
+    "ConversionError", "image_to_numpy", "image_to_mono8", "numpy_to_image", "camera_info_to_model",
     "model_to_camera_info", "pointcloud2_to_arrays", "pointcloud2_to_xyz", "arrays_to_pointcloud2",
     "pose_to_matrix", "matrix_to_pose", "pose_stamped_to_matrix", "matrix_to_pose_stamped",
     "transform_to_matrix", "matrix_to_transform", "transform_stamped_to_matrix",
@@ -119,6 +119,26 @@ def image_to_numpy(msg: Image, to_mono: bool = False) -> np.ndarray:
                 "bgra8": cv2.COLOR_BGRA2GRAY, "rgba8": cv2.COLOR_RGBA2GRAY}[enc]
         arr = cv2.cvtColor(np.ascontiguousarray(arr), code)
     return arr
+
+
+# encodings that carry intensity (16UC1 and 32FC1 are depth/disparity images, not camera images)
+_INTENSITY = ("mono8", "8UC1", "mono16", "bgr8", "rgb8", "8UC3", "bgra8", "rgba8")
+
+
+def image_to_mono8(msg: Image) -> np.ndarray:
+    """(H, W) uint8 grey image of a camera image message (what ELAS and ORB need).
+
+    Colour is converted to grey, mono16 is scaled as cv_bridge does (value / 256). Raises
+    ConversionError for encodings that are not intensity images (16UC1, 32FC1: depth maps) and
+    for the malformed messages :func:`image_to_numpy` refuses.
+    """
+    if msg.encoding in _ENCODINGS and msg.encoding not in _INTENSITY:
+        raise ConversionError("image encoding %r is not a camera intensity image (expected one of %s)"
+                              % (msg.encoding, ", ".join(_INTENSITY)))
+    img = image_to_numpy(msg, to_mono=True)
+    if img.dtype == np.uint16:
+        img = (img >> 8).astype(np.uint8)
+    return np.ascontiguousarray(img)
 
 
 def numpy_to_image(arr: np.ndarray, encoding: Optional[str] = None, stamp=None,

@@ -507,6 +507,18 @@ class VoxelMap:
         self.n_removed += len(slots)
 
     # ------------------------------------------------------------------ loop closure
+    def detach_anchors(self) -> int:
+        """Forget every keyframe anchor (points stay where they are, no longer follow corrections).
+
+        For a pose source that restarts its keyframe ids (a looping bag starts a new tracking map):
+        a new keyframe reusing an old id must not move the old points. Returns the points detached.
+        """
+        a = self._a
+        live = a["alive"][: self._top] & (a["anchor"][: self._top] >= 0)
+        a["anchor"][: self._top][live] = -1
+        self.anchors = {}
+        return int(live.sum())
+
     def apply_corrections(self, corrections: Dict[int, np.ndarray]) -> int:
         """Move the points of corrected anchors rigidly: ``p' = T_new inv(T_old) p``.
 

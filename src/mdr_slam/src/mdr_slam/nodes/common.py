@@ -34,12 +34,18 @@ class Throttled:
         self.counts = {}
 
     def __call__(self, key: str, text: str, level: str = "warn") -> None:
+        import re
         import time
         import rospy
         self.counts[key] = self.counts.get(key, 0) + 1
         now = time.monotonic()
-        if now - self._last.get(key, -1e9) >= self.period:
-            self._last[key] = now
+        # throttled per kind and wording (numbers aside): a truncated image does not hide a wrong
+        # encoding reported under the same kind a moment later
+        slot = key + "|" + re.sub(r"[-+]?[0-9][0-9.eE+-]*", "#", text)[:80]
+        if now - self._last.get(slot, -1e9) >= self.period:
+            if len(self._last) > 500:   # wordings that never repeat must not grow without bound
+                self._last.clear()
+            self._last[slot] = now
             n = self.counts[key]
             suffix = " (%d times so far)" % n if n > 1 else ""
             getattr(rospy, "log" + level)("%s%s", text, suffix)
@@ -60,3 +66,20 @@ class StampGuard:
             return "duplicate"
         self.last = t
         return "backwards"
+
+
+class ClockWatch:
+    """Detects ROS time itself jumping back (a looping bag, a restarted sim clock): only then is
+    an older stamp a new timeline (reset); without it an older stamp is one stale message (skip).
+    The first message of a new lap can arrive just before the clock jumps: it is skipped as
+    stale and the reset comes with the next one."""
+
+    def __init__(self):
+        self.last = -np.inf
+
+    def jumped(self) -> bool:
+        import rospy
+        now = rospy.Time.now().to_sec()
+        j = now < self.last - 1e-3
+        self.last = now
+        return j

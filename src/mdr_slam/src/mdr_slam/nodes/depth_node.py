@@ -24,7 +24,7 @@ from typing import Optional
 
 import numpy as np
 
-from .common import StampGuard, Throttled, get_params
+from .common import ClockWatch, StampGuard, Throttled, get_params
 
 DEFAULTS = {
     "map_frame": "map",
@@ -68,6 +68,7 @@ class DepthNode:
         self.t_start = time.monotonic()
         self.kf_events_seen = False
         self.kf_pending = []                  # (stamp, id) of keyframes not yet started
+        self.clock = ClockWatch()             # ROS time jumping back: a new timeline
 
         if p["calib"]:
             self.fixed_camera = self._load_calib(p["calib"])
@@ -105,10 +106,15 @@ class DepthNode:
                 rospy.logwarn("depth_node: mdr_slam_msgs unavailable (%s); automatic keyframes", e)
 
         import diagnostic_updater
+        from .health import ProcessHealth
+        self.health = ProcessHealth()
         self.updater = diagnostic_updater.Updater()
         self.updater.setHardwareID("mdr_depth")
         self.updater.period = p["diagnostic_period"]
         self.updater.add("depth", self._diagnostics)
+        # also without input (the worker updates after each frame): "no frame processed yet"
+        self.diag_timer = rospy.Timer(rospy.Duration(max(0.1, p["diagnostic_period"])),
+                                      lambda _e: self.updater.update(), reset=True)
         self.worker = threading.Thread(target=self._work, name="depth_worker", daemon=True)
         self.worker.start()
         rospy.loginfo("depth_node: %s, temporal=%s, pose from %s, listening on %s and %s",
@@ -219,6 +225,10 @@ class DepthNode:
                 self.warn("tf", "depth_node: no pose %s <- %s at %.3f (%s); frame skipped"
                           % (self.p["map_frame"], frame, stamp.to_sec(), str(e).splitlines()[0]))
                 return None
+            except rospy.ROSTimeMovedBackwardsException:
+                self.warn("tfback", "depth_node: time went backwards while waiting for the pose at "
+                          "%.3f (bag loop?); frame skipped" % stamp.to_sec())
+                return None
         t = stamp.to_sec()
         deadline = time.monotonic() + self.p["tf_timeout"]
         while True:  # the pose of this very frame may still be on its way from the pose node
@@ -235,20 +245,25 @@ class DepthNode:
     def process(self, left, right, linfo, rinfo, t_recv):
         import rospy
         from ..camera import CalibrationError
-        from ..conversions import (ConversionError, arrays_to_pointcloud2, image_to_numpy,
+        from ..conversions import (ConversionError, arrays_to_pointcloud2, image_to_mono8,
                                    numpy_to_image)
         from ..depth import render_depth
         stamp = left.header.stamp
         t = stamp.to_sec()
         state = self.guard.check(t)
-        if state == "backwards":
+        jumped = self.clock.jumped()
+        if state == "backwards" and not jumped:   # the clock goes on: one out-of-order pair
+            self.warn("stale", "depth_node: stereo stamp %.3f is older than the last one; skipped" % t)
+            self.counts["skipped"] += 1
+            return
+        if jumped:
             self.warn("back", "depth_node: time went backwards to %.3f (bag loop?); filter reset" % t)
             with self.lock:
                 if self.depth is not None:
                     self.depth.reset()
                 self.kf_pending = []
             self.pose_cache.clear()
-        elif state == "duplicate":
+        if state == "duplicate":
             self.warn("dup", "depth_node: duplicate stamp %.3f; skipped" % t)
             self.counts["skipped"] += 1
             return
@@ -258,8 +273,8 @@ class DepthNode:
                 raise ConversionError("no camera_info and no calib file")
             self._camera_for(linfo, rinfo)
             key = "image"
-            L = image_to_numpy(left, to_mono=True)
-            R = image_to_numpy(right, to_mono=True)
+            L = image_to_mono8(left)
+            R = image_to_mono8(right)
             key = "size"
             if L.shape != R.shape:
                 raise ConversionError("left %s and right %s images differ in size" % (L.shape, R.shape))
@@ -319,6 +334,8 @@ class DepthNode:
         stat.add("points_last_frame", str(self.last_points))
         for k, v in self.last_timings.items():
             stat.add("ms_" + k, "%.1f" % v)
+        stat.add("drops", str(c["dropped"] + c["skipped"]))   # pairs received but not published
+        self.health.add_to(stat)
         return stat
 
 

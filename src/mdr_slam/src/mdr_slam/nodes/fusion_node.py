@@ -12,6 +12,16 @@ A thin shell around :class:`mdr_slam.fusion.VoxelMap` (paper section 3.4):
   intensity, confidence) and ``/mdr/map/grid`` (nav_msgs/OccupancyGrid, latched) for move_base.
 * services ``~save_map``, ``~load_map``, ``~reset``, ``~export_mesh``; ``~load_map`` param at
   start; autosave on shutdown and every ``~autosave_period`` s (atomic writes).
+* crash recovery (``~resume``): while running, the node keeps a marker ``<map_path>.running``; a
+  clean shutdown saves and removes it. A node started while the marker is still there (the last
+  one was killed, e.g. respawned by roslaunch) reloads ``map_path``: what is lost is bounded by
+  the integrations of the last ``~autosave_period`` seconds before the crash (plus the clouds that
+  arrive while it restarts).
+* tracking LOST (``/mdr/tracking_state``): a cloud whose stamp falls where the pose node was LOST
+  (or not initialised) is skipped, even when tf could interpolate a pose across the gap, so a
+  lost tracker never smears the map; integration resumes with the first tracked frame.
+* time going backwards (a looping bag): keyframe anchors and tracking states are forgotten with a
+  warning (tf2 clears its own buffer), the map stays; timers survive the jump.
 * bad input (malformed/empty clouds, NaN points, absurd depths, missing pose, time going
   backwards) is logged (throttled) and skipped; the node never dies on input.
 """
@@ -23,13 +33,15 @@ import time
 
 import numpy as np
 
-from .common import StampGuard, Throttled, get_params
+from .common import ClockWatch, StampGuard, Throttled, get_params
+from .health import ProcessHealth
 
 DEFAULTS = {
     "map_frame": "map",
     "cloud_topic": "/mdr/depth/points",
     "pose_topic": "/mdr/pose",
     "keyframes_topic": "/mdr/keyframes",
+    "tracking_state_topic": "/mdr/tracking_state",   # "" = do not gate on tracking state
     "pose_source": "tf",            # tf: tf2 map <- cloud frame at the stamp; topic: /mdr/pose
     "tf_timeout": 0.1,              # s to wait for the transform at the cloud's stamp
     "sync_slop": 0.05,              # s, ApproximateTime slop for pose_source=topic
@@ -64,6 +76,7 @@ DEFAULTS = {
     # files
     "map_path": "~/.ros/mdr_map.ply",
     "load_map": "",
+    "resume": False,                # reload map_path after an unclean exit (see the module doc)
     "autosave": True,
     "autosave_period": 60.0,        # s; 0 = only on shutdown
     "mesh_path": "~/.ros/mdr_mesh.ply",
@@ -76,15 +89,6 @@ DEFAULTS = {
     "diagnostics_period": 1.0,
     "omp_threads": 1,               # Open3D OpenMP threads (0 = OpenMP default: all cores)
 }
-
-
-def _rss_bytes() -> int:
-    try:
-        import psutil
-        return int(psutil.Process().memory_info().rss)
-    except ImportError:
-        with open("/proc/self/statm") as f:
-            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
 
 
 class FusionNode:
@@ -113,13 +117,33 @@ class FusionNode:
         self.rate_window = []                # wall times of recent integrations
         self.last_latency = float("nan")
         self.last_proc = float("nan")
-        if p["load_map"]:
-            path = os.path.expanduser(p["load_map"])
+        self.states = []                     # (stamp, TrackingState.state), recent, time-ordered
+        self.clock = ClockWatch()            # ROS time jumping back (bag loop): a new timeline
+        self.marker = self.map_path + ".running"
+        self.run_id = str(rospy.get_param("/run_id", ""))
+        path = os.path.expanduser(p["load_map"]) if p["load_map"] else ""
+        if p["resume"] and self._crashed_before():
+            path = self.map_path
+            rospy.logwarn("fusion_node: the previous fusion node of this session did not shut down "
+                          "cleanly: resuming its autosave %s (integrations of at most the last "
+                          "autosave_period = %.1f s before the crash are lost)", path,
+                          p["autosave_period"])
+        if path:
             try:
                 n = self.map.load(path)
                 rospy.loginfo("fusion_node: loaded %d map points from %s", n, path)
             except (IOError, OSError, ValueError) as e:
                 rospy.logerr("fusion_node: could not load map %s: %s (starting empty)", path, e)
+        if p["autosave"]:
+            try:  # "running, not yet saved on a clean exit": what resume looks for after a crash
+                d = os.path.dirname(self.marker)
+                if d and not os.path.isdir(d):
+                    os.makedirs(d)
+                with open(self.marker, "w") as f:
+                    f.write("%s %d\n" % (self.run_id, os.getpid()))
+            except (IOError, OSError) as e:
+                rospy.logwarn("fusion_node: cannot write %s (%s): no resume after a crash",
+                              self.marker, e)
         self.pub_points = rospy.Publisher("/mdr/map/points", PointCloud2, queue_size=1, latch=True)
         self.pub_grid = rospy.Publisher("/mdr/map/grid", OccupancyGrid, queue_size=1, latch=True)
         self.tf_buffer = tf2_ros.Buffer(cache_time=rospy.Duration(60.0))
@@ -141,27 +165,74 @@ class FusionNode:
                                               queue_size=2, buff_size=big)
         self.sub_kf = rospy.Subscriber(p["keyframes_topic"], KeyFrameArray, self.on_keyframes,
                                        queue_size=20)
+        if p["tracking_state_topic"]:
+            from mdr_slam_msgs.msg import TrackingState
+            self.sub_state = rospy.Subscriber(p["tracking_state_topic"], TrackingState,
+                                              self.on_state, queue_size=50)
         self.srvs = [rospy.Service("~save_map", SaveMap, self.srv_save),
                      rospy.Service("~load_map", LoadMap, self.srv_load),
                      rospy.Service("~reset", Trigger, self.srv_reset),
                      rospy.Service("~export_mesh", ExportMesh, self.srv_mesh)]
         self.timers = []
         if p["publish_rate"] > 0:
-            self.timers.append(rospy.Timer(rospy.Duration(1.0 / p["publish_rate"]), self.on_publish))
+            self.timers.append(rospy.Timer(rospy.Duration(1.0 / p["publish_rate"]), self.on_publish,
+                                           reset=True))  # reset: survive sim time jumping back
         if p["autosave"] and p["autosave_period"] > 0:
-            self.timers.append(rospy.Timer(rospy.Duration(p["autosave_period"]), self.on_autosave))
+            self.timers.append(rospy.Timer(rospy.Duration(p["autosave_period"]), self.on_autosave,
+                                           reset=True))
         self.diag = None
+        self.health = ProcessHealth()
         try:
             import diagnostic_updater
             self.diag = diagnostic_updater.Updater()
             self.diag.setHardwareID("mdr_slam")
             self.diag.add("fusion", self.diagnostics)
             self.timers.append(rospy.Timer(rospy.Duration(p["diagnostics_period"]),
-                                           lambda _e: self.diag.update()))
+                                           lambda _e: self.diag.update(), reset=True))
         except ImportError:
             rospy.logwarn("fusion_node: diagnostic_updater missing; no diagnostics")
 
+    def _crashed_before(self) -> bool:
+        """The marker of a fusion node of this ROS session (same /run_id) that never exited
+        cleanly, and its autosave, exist."""
+        try:
+            with open(self.marker) as f:
+                words = f.read().split()
+        except (IOError, OSError):
+            return False
+        return bool(words) and words[0] == self.run_id and os.path.exists(self.map_path)
+
     # ------------------------------------------------------------------ input
+    def on_state(self, msg):
+        """Tracking states, kept for ~30 s (per frame) so clouds can be checked at their stamp."""
+        t = msg.header.stamp.to_sec()
+        with self.lock:
+            if self.states and t < self.states[-1][0]:
+                self.states = []               # time went backwards: states of the old timeline
+            self.states.append((t, int(msg.state)))
+            if len(self.states) > 600:
+                del self.states[:100]
+
+    def _tracking_at(self, stamp: float):
+        """The tracking state of the latest frame not newer than ``stamp`` (None if unknown)."""
+        with self.lock:
+            for t, s in reversed(self.states):
+                if t <= stamp + 1e-6:
+                    return s
+        return None
+
+    def on_time_jump(self, stamp: float) -> None:
+        """Time went backwards (a looping bag): forget what belongs to the old timeline, keep
+        the map."""
+        with self.lock:
+            n = self.map.detach_anchors() if len(self.kf_ids) or self.map.anchors else 0
+            self.kf_ids = np.zeros(0, np.int64)
+            self.kf_stamps = np.zeros(0)
+            self.kf_poses = {}
+            self.states = [s for s in self.states if s[0] <= stamp + 1e-6]
+        self.warn("back", "time went backwards to %.3f (bag loop?): keyframe anchors (%d points) "
+                  "and tracking states reset, the map (%d points) stays" % (stamp, n, len(self.map)))
+
     def on_cloud(self, msg):
         import rospy
         import tf2_ros
@@ -176,6 +247,10 @@ class FusionNode:
             return
         except ConversionError as e:
             self.warn("tfbad", "bad transform for the cloud: %s; skipped" % e)
+            return
+        except rospy.ROSTimeMovedBackwardsException:
+            self.warn("tfback", "time went backwards while waiting for the cloud's pose at %.3f "
+                      "(bag loop?); skipped" % msg.header.stamp.to_sec())
             return
         self.integrate(msg, T)
 
@@ -209,9 +284,18 @@ class FusionNode:
             self.warn("empty", "empty cloud at %.3f; skipped" % stamp)
             return
         state = self.guard.check(stamp)
-        if state != "ok":
-            self.warn(state, "cloud stamp %.3f is %s the last one; skipped" % (
-                stamp, "older than" if state == "backwards" else "equal to"))
+        if self.clock.jumped():            # the clock itself jumped back: a new timeline
+            self.on_time_jump(stamp)
+        elif state == "backwards":         # the clock goes on: one stale cloud
+            self.warn("stale", "cloud stamp %.3f is older than the last one; skipped" % stamp)
+            return
+        if state == "duplicate":
+            self.warn(state, "cloud stamp %.3f is equal to the last one; skipped" % stamp)
+            return
+        tracking = self._tracking_at(stamp)
+        if tracking in (0, 2):  # TrackingState NOT_INITIALIZED, LOST: no trustworthy pose
+            self.warn("lost", "tracking %s at the cloud's stamp %.3f; skipped (no smeared map)" % (
+                "LOST" if tracking == 2 else "not initialised", stamp))
             return
         inten = arr.get(self.p["intensity_field"])
         w = arr.get(self.p["weight_field"])
@@ -353,9 +437,17 @@ class FusionNode:
         stat.add("map points", str(n))
         stat.add("clouds integrated", str(self.n_integrated))
         stat.add("points removed by cleaning", str(self.map.n_removed))
-        stat.add("process RSS (MB)", "%.1f" % (_rss_bytes() / 1e6))
+        rss = self.health.rss_mb()
+        stat.add("process RSS (MB)", "%.1f" % rss)
         for k, v in sorted(self.warn.counts.items()):
             stat.add("skipped: " + k, str(v))
+        # the keys every node reports (pose_node, depth_node: same names)
+        stat.add("rate_hz", "%.2f" % rate)
+        stat.add("latency_s", "%.3f" % self.last_latency)
+        stat.add("drops", str(sum(v for k, v in self.warn.counts.items()   # clouds not integrated
+                                  if k not in ("kfbad", "publish", "autosave"))))
+        stat.add("cpu_percent", "%.1f" % self.health.cpu_percent())
+        stat.add("rss_mb", "%.1f" % rss)
         return stat
 
     # ------------------------------------------------------------------ files and services
@@ -448,6 +540,8 @@ class FusionNode:
                 if self.p["autosave"] and len(self.map):
                     path, n = self.save()
                     print("fusion_node: saved %d map points to %s" % (n, path), flush=True)
+                if os.path.exists(self.marker):
+                    os.unlink(self.marker)  # a clean exit: nothing to resume
             except Exception as e:  # report, never raise while shutting down
                 print("fusion_node: autosave failed: %r" % (e,), flush=True)
             self.closed = True

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .common import StampGuard, Throttled, get_params, parse_transform
+from .common import ClockWatch, StampGuard, Throttled, get_params, parse_transform
 
 DEFAULTS = {
     "source": "orb",
@@ -26,6 +26,7 @@ DEFAULTS = {
     "threads": True,
     "trajectory_path": "",
     "trajectory_format": "",
+    "diagnostics_period": 1.0,
 }
 
 
@@ -47,11 +48,78 @@ class PoseRelay:
         self.path = Path()
         self.path.header.frame_id = p["map_frame"]
         self.guard = StampGuard()
+        self.clock = ClockWatch()          # ROS time jumping back (bag loop): a new timeline
         self.warn = Throttled()
         if self.static_tf is not None:
             from ..conversions import matrix_to_transform_stamped
             self.static_tf.sendTransform(matrix_to_transform_stamped(
                 self.T_base_cam, rospy.Time(0), p["base_frame"], p["camera_frame"]))
+        self._init_diagnostics()
+
+    # ------------------------------------------------------------------ diagnostics
+    def _init_diagnostics(self) -> None:
+        """/diagnostics "pose_node: pose": rate, latency, drops, tracking state, CPU, RSS."""
+        import rospy
+        from .health import ProcessHealth, RateWindow
+        self.health = ProcessHealth()
+        self.rate = RateWindow(10.0)
+        self.n_published = 0
+        self.last_latency = float("nan")
+        self.tracking = {"state": "GROUNDTRUTH" if self.p.get("source") == "groundtruth"
+                         else "NOT_INITIALIZED", "time_ms": float("nan"), "lost": 0,
+                         "keyframes": 0, "loop_closures": 0, "last_ok": None}
+        self.diag = None
+        try:
+            import diagnostic_updater
+        except ImportError:
+            rospy.logwarn("pose_node: diagnostic_updater missing; no diagnostics")
+            return
+        self.diag = diagnostic_updater.Updater()
+        self.diag.setHardwareID("mdr_slam")
+        self.diag.add("pose", self.diagnostics)
+        self.diag_timer = rospy.Timer(rospy.Duration(float(self.p.get("diagnostics_period", 1.0))),
+                                      lambda _e: self.diag.update(), reset=True)
+
+    def note_tracking(self, res) -> None:
+        """Record one tracking result (OrbNode) for the diagnostics."""
+        import rospy
+        t = self.tracking
+        t["state"], t["time_ms"] = str(res.state), float(res.time_ms)
+        t["keyframes"], t["loop_closures"] = int(res.n_keyframes), int(res.n_loop_closures)
+        if res.state == "LOST":
+            t["lost"] += 1
+        elif res.T_map_cam is not None:
+            t["last_ok"] = rospy.Time.now()
+
+    def diagnostics(self, stat):
+        import rospy
+        from diagnostic_msgs.msg import DiagnosticStatus
+        t = self.tracking
+        rate = self.rate.rate()
+        level, text = DiagnosticStatus.OK, "tracking %s" % t["state"]
+        if not self.n_published:
+            level, text = DiagnosticStatus.WARN, "no pose published yet (%s)" % t["state"]
+        elif t["state"] == "LOST":
+            level = DiagnosticStatus.WARN
+        elif rate == 0:
+            level, text = DiagnosticStatus.WARN, "no pose in the last 10 s"
+        stat.summary(level, text)
+        stat.add("tracking_state", t["state"])
+        stat.add("rate_hz", "%.2f" % rate)
+        stat.add("latency_s", "%.3f" % self.last_latency)       # image (or input pose) stamp -> published
+        stat.add("poses_published", str(self.n_published))
+        stat.add("drops", str(sum(v for k, v in self.warn.counts.items()
+                                  if k not in ("back", "calib_change"))))
+        stat.add("tracking_time_ms", "%.1f" % t["time_ms"])
+        stat.add("frames_lost", str(t["lost"]))
+        stat.add("keyframes", str(t["keyframes"]))
+        stat.add("loop_closures", str(t["loop_closures"]))
+        stat.add("last_tracked_s_ago", "%.2f" % ((rospy.Time.now() - t["last_ok"]).to_sec()
+                                                  if t["last_ok"] is not None else float("nan")))
+        for k, v in sorted(self.warn.counts.items()):
+            stat.add("skipped: " + k, str(v))
+        self.health.add_to(stat)
+        return stat
 
     def publish(self, stamp, T_map_cam: np.ndarray, T_map_odom: np.ndarray = None) -> None:
         from nav_msgs.msg import Odometry
@@ -62,10 +130,14 @@ class PoseRelay:
             self.warn("nan", "pose at %.3f is not a finite rigid transform; skipped" % stamp.to_sec())
             return
         state = self.guard.check(stamp.to_sec())
-        if state == "backwards":
+        jumped = self.clock.jumped()
+        if state == "backwards" and not jumped:   # the clock goes on: one out-of-order pose
+            self.warn("stale", "pose stamp %.3f is older than the last one; skipped" % stamp.to_sec())
+            return
+        if jumped:
             self.warn("back", "time went backwards (bag loop?); clearing the path")
             del self.path.poses[:]
-        elif state == "duplicate":
+        if state == "duplicate":
             self.warn("dup", "duplicate pose stamp %.3f; skipped" % stamp.to_sec())
             return
         ps = matrix_to_pose_stamped(T_map_cam, stamp, p["map_frame"])
@@ -90,6 +162,10 @@ class PoseRelay:
                 tfs.append(matrix_to_transform_stamped(T_odom_base, stamp, p["odom_frame"],
                                                        p["base_frame"]))
             self.tf.sendTransform(tfs)
+        import rospy
+        self.n_published += 1
+        self.rate.tick()
+        self.last_latency = (rospy.Time.now() - stamp).to_sec()
 
 
 _STATE_CODES = {"NOT_INITIALIZED": 0, "OK": 1, "LOST": 2, "RELOCALIZED": 3}
@@ -117,6 +193,7 @@ class OrbNode:
         self.T_map_odom = np.eye(4)
         self.kf_poses = {}                 # last published T_map_kf per keyframe id
         self.last_stamp = None
+        self.clock = ClockWatch()          # ROS time jumping back (bag loop): a new timeline
         self.lock = __import__("threading").Lock()
         self.pub_state = rospy.Publisher("/mdr/tracking_state", TrackingState, queue_size=10)
         self.pub_kfs = rospy.Publisher("/mdr/keyframes", KeyFrameArray, queue_size=10, latch=True)
@@ -159,13 +236,8 @@ class OrbNode:
         return self.camera
 
     def _to_mono8(self, msg):
-        from ..conversions import image_to_numpy
-        img = image_to_numpy(msg, to_mono=True)
-        if img.dtype == np.uint16:
-            img = (img >> 8).astype(np.uint8)
-        elif img.dtype != np.uint8:
-            img = np.clip(img, 0, 255).astype(np.uint8)
-        return np.ascontiguousarray(img)
+        from ..conversions import image_to_mono8
+        return image_to_mono8(msg)   # refuses 16UC1/32FC1 (depth images) and malformed data
 
     def on_stereo(self, left_msg, right_msg, left_info=None, right_info=None):
         from ..conversions import ConversionError
@@ -187,10 +259,14 @@ class OrbNode:
                           % (left.shape[::-1], right.shape[::-1], w, h))
                 return
             t = stamp.to_sec()
-            if self.last_stamp is not None and t <= self.last_stamp:
-                if t == self.last_stamp:
-                    self.warn("dup", "duplicate stereo stamp %.3f; skipped" % t)
-                    return
+            jumped = self.clock.jumped()
+            if self.last_stamp is not None and t == self.last_stamp:
+                self.warn("dup", "duplicate stereo stamp %.3f; skipped" % t)
+                return
+            if self.last_stamp is not None and t < self.last_stamp and not jumped:
+                self.warn("stale", "stereo stamp %.3f is older than the last one; skipped" % t)
+                return   # the clock goes on: one out-of-order pair
+            if jumped and self.system is not None:   # ROS time went back: a new timeline
                 self.warn("back", "time went backwards (bag loop?): starting a new map")
                 self._save_on_exit()
                 self.system.shutdown()
@@ -223,6 +299,7 @@ class OrbNode:
         st.n_loop_closures = res.n_loop_closures
         st.tracking_time_ms = res.time_ms
         self.pub_state.publish(st)
+        self.relay.note_tracking(res)
         if res.corrections is not None:
             reason, cid, kfs = res.corrections
             if reason == "loop_closure" and res.ref_keyframe_id in kfs and \
