@@ -296,3 +296,12 @@ def test_bag_loop_resets_time_state_and_keeps_the_map(live):
         assert what in out, (what, out[-3000:])
     assert node_pid("/fusion_node") and node_pid("/depth_node") and node_pid("/pose_node")
     assert "Traceback" not in out, out
+    # /diagnostics goes on after the jump (diagnostic_updater alone waits out the lost time)
+    from diagnostic_msgs.msg import DiagnosticArray
+    seen = set()
+    sub = live.rospy.Subscriber("/diagnostics", DiagnosticArray,
+                                lambda m: seen.update(s.name.split(":")[0] for s in m.status))
+    try:
+        assert wait_for(lambda: {"depth_node", "fusion_node", "pose_node"} <= seen, 4, 0.2), seen
+    finally:
+        sub.unregister()

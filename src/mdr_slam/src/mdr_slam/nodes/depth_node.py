@@ -25,6 +25,7 @@ from typing import Optional
 import numpy as np
 
 from .common import ClockWatch, StampGuard, Throttled, get_params
+from .health import update_diagnostics
 
 DEFAULTS = {
     "map_frame": "map",
@@ -114,7 +115,7 @@ class DepthNode:
         self.updater.add("depth", self._diagnostics)
         # also without input (the worker updates after each frame): "no frame processed yet"
         self.diag_timer = rospy.Timer(rospy.Duration(max(0.1, p["diagnostic_period"])),
-                                      lambda _e: self.updater.update(), reset=True)
+                                      lambda _e: update_diagnostics(self.updater), reset=True)
         self.worker = threading.Thread(target=self._work, name="depth_worker", daemon=True)
         self.worker.start()
         rospy.loginfo("depth_node: %s, temporal=%s, pose from %s, listening on %s and %s",
@@ -209,7 +210,7 @@ class DepthNode:
             except Exception as e:  # never die on input: log and go on with the next pair
                 self.counts["skipped"] += 1
                 self.warn("error", "depth_node: frame skipped after an error: %r" % (e,), "err")
-            self.updater.update()
+            update_diagnostics(self.updater)
 
     def _pose_at(self, stamp, frame: str) -> Optional[np.ndarray]:
         import rospy

@@ -34,7 +34,7 @@ import time
 import numpy as np
 
 from .common import ClockWatch, StampGuard, Throttled, get_params
-from .health import ProcessHealth
+from .health import ProcessHealth, update_diagnostics
 
 DEFAULTS = {
     "map_frame": "map",
@@ -188,7 +188,7 @@ class FusionNode:
             self.diag.setHardwareID("mdr_slam")
             self.diag.add("fusion", self.diagnostics)
             self.timers.append(rospy.Timer(rospy.Duration(p["diagnostics_period"]),
-                                           lambda _e: self.diag.update(), reset=True))
+                                           lambda _e: update_diagnostics(self.diag), reset=True))
         except ImportError:
             rospy.logwarn("fusion_node: diagnostic_updater missing; no diagnostics")
 

@@ -76,3 +76,14 @@ class RateWindow:
             self._trim(now)
             span = min(self.window, max(1e-6, now - self.t_start))
             return len(self._t) / span
+
+
+def update_diagnostics(updater) -> None:
+    """``diagnostic_updater.Updater.update()`` that survives ROS time jumping back (a looping bag):
+    the updater waits until ``last_time + period``, which lies in the future after a jump, so
+    /diagnostics would go quiet for the bag's length. Reset it when now is before its last update."""
+    import rospy
+    last = getattr(updater, "last_time", None)
+    if last is not None and rospy.Time.now() < last:
+        updater.last_time = rospy.Time(0)
+    updater.update()

@@ -60,7 +60,7 @@ class PoseRelay:
     def _init_diagnostics(self) -> None:
         """/diagnostics "pose_node: pose": rate, latency, drops, tracking state, CPU, RSS."""
         import rospy
-        from .health import ProcessHealth, RateWindow
+        from .health import ProcessHealth, RateWindow, update_diagnostics
         self.health = ProcessHealth()
         self.rate = RateWindow(10.0)
         self.n_published = 0
@@ -78,7 +78,7 @@ class PoseRelay:
         self.diag.setHardwareID("mdr_slam")
         self.diag.add("pose", self.diagnostics)
         self.diag_timer = rospy.Timer(rospy.Duration(float(self.p.get("diagnostics_period", 1.0))),
-                                      lambda _e: self.diag.update(), reset=True)
+                                      lambda _e: update_diagnostics(self.diag), reset=True)
 
     def note_tracking(self, res) -> None:
         """Record one tracking result (OrbNode) for the diagnostics."""
