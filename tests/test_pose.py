@@ -286,3 +286,42 @@ def test_mdr_vocab_trains_on_a_folder(tmp_path, sequence):
     words, w = voc.transform(ORBextractor(300)(images[0][0])[3])
     assert len(words) > 10 and abs(float(w.sum()) - 1.0) < 1e-5
     assert mdr_main(["vocab", str(tmp_path / "missing"), "-o", out]) == 2
+
+
+@pytest.fixture(scope="module")
+def office_low_texture():
+    """The office sample's hard stretch at half resolution (376x240, 20 Hz): 6.5 s from a
+    textured poster into blank, low-contrast walls while the camera turns at 12-23 deg/s, then
+    slowing to the stop before the sweep (loop+pure_rotation, seed 0, t = 7.0-13.5 s: the
+    frames where the full-resolution sample used to be lost). Only these frames are rendered."""
+    from mdr_slam.sim.render import Simulator, sim_camera
+    from mdr_slam.sim.scene import make_scene
+    from mdr_slam.sim.trajectory import build_trajectory
+    scene = make_scene("office", seed=0)
+    cam = sim_camera(scale=0.5)
+    stamps = np.arange(7.0, 13.5, 0.05)
+    poses = build_trajectory("loop+pure_rotation", 30.0, 0, scene=scene).poses(stamps)
+    sim = Simulator(scene, cam, seed=0, noise=2.0)
+    images = [sim.render(T, index=i, depth=False) for i, T in enumerate(poses)]
+    return cam, stamps, poses, [(im["left"], im["right"]) for im in images]
+
+
+def test_low_texture_turn_tracked_end_to_end(office_low_texture):
+    from mdr_slam.io import Trajectory
+    from mdr_slam.pipeline import load_params
+    cam, stamps, poses, images = office_low_texture
+    p = load_params("pose")
+    p.update(n_features=1000)
+    s = System(cam, params=p, threads=False)
+    states, fallback = [], 0
+    for t, (l, r) in zip(stamps, images):
+        states.append(s.track(t, l, r).state)
+        fallback += s.extractor.n_primary < p["n_features"]   # the FAST fallback was needed
+    s.shutdown()
+    # the sequence really is low-texture: most frames lack corners at the main FAST threshold
+    assert fallback > 0.4 * len(images), fallback
+    assert states.count("OK") == len(states), [(i, x) for i, x in enumerate(states) if x != "OK"]
+    gt = Trajectory.from_matrices(stamps, poses)
+    ate = ate_rmse(s.trajectory(), gt)
+    assert len(s.trajectory()) == len(images)
+    assert ate < 0.25, ate       # 2.2 m path; measured 0.14 m (blank walls: few, weak corners)

@@ -5,7 +5,10 @@ keypoints on the same row band (+-2 px times the octave scale), within the dispa
 a neighbouring octave are candidates; the best Hamming distance below (TH_HIGH+TH_LOW)/2 wins, then
 an 11x11 SAD patch search over +-5 px and a parabola through the three SAD values around the minimum
 give a sub-pixel disparity; matches whose SAD exceeds 2.1x the median are dropped (repetitive
-texture). Everything is vectorized: one cv2.batchDistance matrix, masks, gathers.
+texture). Everything is vectorized: candidate pairs from per-octave row buckets (sorted rows +
+searchsorted), Hamming distances on those pairs only, one sort for the best pair per keypoint,
+and all 11 SAD shifts of all matches as one int16 array (tests/test_pose_speed.py checks the
+result against a plain per-keypoint loop).
 """
 from __future__ import annotations
 
@@ -44,23 +47,43 @@ def compute_stereo_matches(left: np.ndarray, right: np.ndarray, uv_l, oct_l, des
     bf = fx * baseline
     min_z = baseline if min_depth is None else min_depth
     max_d = bf / min_z   # ORB-SLAM2: minZ = b, so maxD = fx
-    # candidate pairs from a row-sorted right list (the row index of ORB-SLAM2's vRowIndices)
-    order = np.argsort(uv_r[:, 1], kind="stable")
-    vr = uv_r[order, 1]
-    rmax = 2.0 * scale[min(int(oct_r.max()), len(scale) - 1)]
-    lo = np.searchsorted(vr, uv_l[:, 1] - rmax, side="left")
-    hi = np.searchsorted(vr, uv_l[:, 1] + rmax, side="right")
-    pl_, pr_ = expand_ranges(lo, hi)
-    pr_ = order[pr_]
+    # candidate pairs (the row index of ORB-SLAM2's vRowIndices), per right octave o: right
+    # keypoints of octave o sorted by row, left keypoints of octaves o-1..o+1 looked up within
+    # +-2*scale[o] rows. This yields exactly the pairs passing the row and octave tests, instead
+    # of a band sized for the coarsest octave that is mostly thrown away.
+    vl = uv_l[:, 1]
+    oct_r = np.minimum(np.asarray(oct_r), len(scale) - 1)
+    oct_l = np.asarray(oct_l)
+    pls, prs = [], []
+    r_sorted = np.argsort(uv_r[:, 1], kind="stable")
+    for o in np.unique(oct_r):
+        rsel = r_sorted[oct_r[r_sorted] == o]        # octave o, sorted by row (stable)
+        lsel = np.nonzero(np.abs(oct_l - o) <= 1)[0]
+        if len(lsel) == 0:
+            continue
+        vr = uv_r[rsel, 1]
+        rad = 2.0 * scale[o]
+        lo = np.searchsorted(vr, vl[lsel] - (rad + 0.01), side="left")
+        hi = np.searchsorted(vr, vl[lsel] + (rad + 0.01), side="right")
+        a, b = expand_ranges(lo, hi)
+        a, b = lsel[a], rsel[b]
+        keep = np.abs(vl[a] - uv_r[b, 1]) <= rad   # the exact (float32) row test
+        pls.append(a[keep])
+        prs.append(b[keep])
+    pl_ = np.concatenate(pls) if pls else np.zeros(0, np.int64)
+    pr_ = np.concatenate(prs) if prs else np.zeros(0, np.int64)
     du = uv_l[pl_, 0] - uv_r[pr_, 0]
-    ok = ((np.abs(uv_l[pl_, 1] - uv_r[pr_, 1]) <= 2.0 * scale[oct_r[pr_]]) & (du >= 0) &
-          (du <= max_d) & (np.abs(oct_l[pl_] - oct_r[pr_]) <= 1))
+    ok = (du >= 0) & (du <= max_d)
     pl_, pr_ = pl_[ok], pr_[ok]
     if len(pl_) == 0:
         return ur, depth
     dist = hamming(desc_l[pl_], desc_r[pr_])
-    # best pair per left keypoint: sort by (left, distance) and take the first of each left
-    o = np.lexsort((dist, pl_))
+    # best pair per left keypoint: one sort on (left, distance, right row rank); ties go to the
+    # right keypoint first in row order, as ORB-SLAM2's scan of its row index
+    rank = np.empty(len(r_sorted), np.int64)
+    rank[r_sorted] = np.arange(len(r_sorted))
+    nr = len(r_sorted)
+    o = np.argsort((pl_.astype(np.int64) * 257 + dist) * nr + rank[pr_], kind="stable")
     pl_, pr_, dist = pl_[o], pr_[o], dist[o]
     first = np.r_[True, pl_[1:] != pl_[:-1]]
     pl_, pr_, dist = pl_[first], pr_[first], dist[first]
@@ -80,15 +103,18 @@ def compute_stereo_matches(left: np.ndarray, right: np.ndarray, uv_l, oct_l, des
         return ur, depth
     off = np.arange(-_W, _W + 1)
     rows = vL[:, None, None] + off[None, :, None]                       # (M, 11, 1)
-    pl = left[rows, uL[:, None, None] + off[None, None, :]].astype(np.float32)   # (M, 11, 11)
-    pl -= left[vL, uL].astype(np.float32)[:, None, None]                # ORB-SLAM2: minus centre
+    pl = left[rows, uL[:, None, None] + off[None, None, :]].astype(np.int16)     # (M, 11, 11)
+    pl -= left[vL, uL].astype(np.int16)[:, None, None]                  # ORB-SLAM2: minus centre
     offr = np.arange(-_W - _L, _W + _L + 1)
-    strip = right[rows, uR0[:, None, None] + offr[None, None, :]].astype(np.float32)  # (M,11,21)
+    strip = right[rows, uR0[:, None, None] + offr[None, None, :]].astype(np.int16)  # (M,11,21)
     shifts = np.arange(-_L, _L + 1)
-    sad = np.empty((len(il), len(shifts)), dtype=np.float32)
-    for j, s in enumerate(shifts):   # 11 shifts, each vectorized over all matches
-        win = strip[:, :, s + _L: s + _L + 2 * _W + 1]
-        sad[:, j] = np.abs(pl - (win - strip[:, _W, s + _L + _W][:, None, None])).sum(axis=(1, 2))
+    # all 11 shifted windows at once as (M, 11 shifts, 11 rows, 11 cols), each minus its centre
+    # pixel, in int16 (|differences| <= 510) with contiguous windows for the sums
+    win = np.lib.stride_tricks.sliding_window_view(strip, 2 * _W + 1, axis=2).transpose(0, 2, 1, 3)
+    win = np.subtract(win, strip[:, _W, _W:_W + 2 * _L + 1][:, :, None, None], order="C")
+    win -= pl[:, None, :, :]
+    np.abs(win, out=win)
+    sad = win.reshape(len(win), 2 * _L + 1, -1).sum(axis=2, dtype=np.int32).astype(np.float32)
     k = np.argmin(sad, axis=1)
     interior = (k > 0) & (k < 2 * _L)
     m = np.arange(len(k))

@@ -56,6 +56,7 @@ class LocalMapping:
         self.thread: Optional[threading.Thread] = None
         self.n_processed = 0
         self.last_ba_ms = 0.0
+        self.ba_worker = None      # optimizer.BAWorker: local BA in a child process (threads only)
 
     # ------------------------------------------------------------------ queue / thread
     def insert_keyframe(self, kf) -> None:
@@ -84,6 +85,10 @@ class LocalMapping:
         self.abort_ba = True
 
     def start(self) -> None:
+        if self.p.get("ba_process", False):
+            from .optimizer import BAWorker
+            self.ba_worker = BAWorker()
+            self.ba_worker.prewarm()
         self.thread = threading.Thread(target=self._run, name="LocalMapping", daemon=True)
         self.thread.start()
 
@@ -104,6 +109,9 @@ class LocalMapping:
             self.cv.notify()
         if self.thread is not None:
             self.thread.join(30.0)
+        if self.ba_worker is not None:
+            self.ba_worker.close()
+            self.ba_worker = None
 
     def spin_sync(self) -> None:
         """Synchronous mode: process every queued keyframe now."""
@@ -125,13 +133,15 @@ class LocalMapping:
                 return
             self.process_new_keyframe(kf)
             self.map_point_culling(kf)
-            self.create_new_map_points(kf)
+        # the epipolar search reads keyframes only; it takes the map lock just to add points, so
+        # tracking is not blocked behind it (it held the lock ~250 ms per keyframe under load)
+        self.create_new_map_points(kf)
         if not self.queue and len(mp.keyframes) > 2 and self.p["local_ba"]:
             import time
             t0 = time.perf_counter()
             moved, _ = Optimizer.local_bundle_adjustment(
                 kf, mp, n_covisible=self.p["ba_covisible"], iterations=self.p["ba_iterations"],
-                abort=lambda: self.abort_ba and self.system.threads)
+                abort=lambda: self.abort_ba and self.system.threads, worker=self.ba_worker)
             self.last_ba_ms = 1000.0 * (time.perf_counter() - t0)
             with mp.lock:
                 if moved:
@@ -175,7 +185,8 @@ class LocalMapping:
     def create_new_map_points(self, kf) -> int:
         """Triangulate unmatched keypoints of ``kf`` with its best covisible keyframes."""
         mp = self.map
-        neigh = mp.best_covisibles(kf, self.p["triangulation_neighbours"])
+        with mp.lock:
+            neigh = mp.best_covisibles(kf, self.p["triangulation_neighbours"])
         R1, t1 = kf.T_cw[:3, :3], kf.T_cw[:3, 3]
         O1 = kf.T_wc[:3, 3]
         K = np.array([[kf.fx, 0, kf.cx], [0, kf.fy, kf.cy], [0, 0, 1.0]])
@@ -258,15 +269,19 @@ class LocalMapping:
             ok &= (d1 > 0) & (d2 > 0)
             ok &= ~((ratio_dist * ratio_factor < ratio_oct) | (ratio_dist > ratio_oct * ratio_factor))
             a, b, X = a[ok], b[ok], X[ok]
-            # keypoints of kf2 may have been taken by an earlier neighbour round: re-check
-            free = (kf.mp_ids[a] < 0) & (kf2.mp_ids[b] < 0)
-            a, b, X = a[free], b[free], X[free]
-            if len(a) == 0:
-                continue
-            ids = mp.add_points(X, kf.desc[a], kf, a)
-            mp.add_observations(kf2, b, ids)
-            mp.mp_visible[ids] = 2
-            mp.mp_found[ids] = 2
+            with mp.lock:
+                # keypoints may have been taken by an earlier neighbour round (or another
+                # thread while the search ran without the lock): re-check
+                if kf.bad or kf2.bad:
+                    continue
+                free = (kf.mp_ids[a] < 0) & (kf2.mp_ids[b] < 0)
+                a, b, X = a[free], b[free], X[free]
+                if len(a) == 0:
+                    continue
+                ids = mp.add_points(X, kf.desc[a], kf, a)
+                mp.add_observations(kf2, b, ids)
+                mp.mp_visible[ids] = 2
+                mp.mp_found[ids] = 2
             self.recent_points = np.concatenate([self.recent_points, ids])
             total += len(a)
         return total

@@ -31,6 +31,7 @@ DEFAULT_PARAMS = {
     "scale_factor": 1.2,
     "n_levels": 8,
     "fast_threshold": 12,
+    "min_fast_threshold": 5,     # poor grid cells re-detected at this FAST threshold (0: off)
     "th_depth": 35.0,            # close/far threshold in baselines (ORB-SLAM2 ThDepth)
     "min_init_points": 100,      # stereo points needed to initialise (ORB-SLAM2: 500)
     "max_frames": 20,            # keyframe at least every max_frames frames (ORB-SLAM2: fps)
@@ -42,12 +43,18 @@ DEFAULT_PARAMS = {
     "local_ba": True,
     "ba_covisible": 10,
     "ba_iterations": 8,
+    "ba_process": False,         # threads: local BA in a child process (helps with spare cores)
     "triangulation_neighbours": 10,
     "loop_closing": True,
     "vocabulary": "",            # npz path; empty = the packaged/built-in vocabulary
     "loop_consistency": 2,       # consecutive keyframes a loop candidate must recur (ORB-SLAM2: 3)
     "reloc_candidates": 10,
     "backpressure_inliers": 80,  # threads: wait for LocalMapping when tracking gets this weak
+    "min_inliers": 30,           # local-map inliers for OK (ORB-SLAM2: 30)
+    "low_texture_points": 150,   # frames with fewer stereo keypoints are low-texture ...
+    "min_inliers_low_texture": 15,  # ... and are tracked OK with this many inliers
+    "wide_search_th": 6.0,       # local-map projection window (x4 px x scale) when both the
+                                 # motion model and the reference keyframe fail
 }
 
 _REASONS = {"local_ba": 1, "loop_closure": 2}
@@ -89,9 +96,11 @@ class System:
         self.camera = camera
         self.threads = bool(threads)
         self.extractor = ORBextractor(p["n_features"], p["scale_factor"], p["n_levels"],
-                                      p["fast_threshold"])
+                                      p["fast_threshold"],
+                                      min_fast_threshold=p["min_fast_threshold"])
         self.extractor_right = ORBextractor(p["n_features"], p["scale_factor"], p["n_levels"],
-                                            p["fast_threshold"])
+                                            p["fast_threshold"],
+                                            min_fast_threshold=p["min_fast_threshold"])
         self.request_reset = False
         self.correction_id = 0
         self._build()
@@ -138,6 +147,7 @@ class System:
             right_rect = cv2.cvtColor(right_rect, cv2.COLOR_BGR2GRAY)
         frame = Frame(stamp, left_rect, right_rect, self.camera, self.extractor,
                       self.extractor_right, th_depth_factor=self.p["th_depth"])
+        frame.n_primary = getattr(self.extractor, "n_primary", frame.N)   # low-texture test
         out = self.tracking.track(frame)
         state = self.tracking.state
         tracked_ok = state in (OK, RELOCALIZED) and frame.T_cw is not None and \

@@ -5,6 +5,14 @@ points (TrackWithMotionModel); if that fails, descriptor matching against the re
 (TrackReferenceKeyFrame); when LOST, relocalization (descriptor matching + PnP RANSAC against
 candidate keyframes); then TrackLocalMap (points of the covisible keyframes projected into the
 frame, pose-only optimization again) and the keyframe decision (NeedNewKeyFrame).
+
+Beyond ORB-SLAM2, for low-texture rooms and sudden turns (the office sample was lost on its blank
+walls): when the motion model and the reference keyframe fail, the whole local map is projected
+with a wide window (track_local_map_wide), then the last frame's stereo keypoints are matched by
+descriptor and PnP RANSAC gives the pose without a motion prior (track_last_frame_pnp). Frames
+that needed the extractor's FAST fallback (or have few stereo keypoints) are "low texture": they
+are tracked with fewer inliers (min_inliers_low_texture) and make keyframes from fewer new close
+points, so the map keeps up with the few corners there are.
 """
 from __future__ import annotations
 
@@ -65,12 +73,19 @@ class Tracking:
                     ok = self.track_with_motion_model(frame)
                 if not ok:
                     ok = self.track_reference_keyframe(frame)
+                frame.ref_kf = self.ref_kf
+                if ok:
+                    ok = self.track_local_map(frame)
+                if not ok and self.velocity is not None:
+                    ok = self.track_local_map_wide(frame) and self.track_local_map(frame)
+                if not ok:
+                    ok = self.track_last_frame_pnp(frame) and self.track_local_map(frame)
             else:
                 ok = self.relocalization(frame)
                 relocalized = ok
-            frame.ref_kf = self.ref_kf
-            if ok:
-                ok = self.track_local_map(frame)
+                frame.ref_kf = self.ref_kf
+                if ok:
+                    ok = self.track_local_map(frame)
             if ok:
                 self.state = RELOCALIZED if relocalized else OK
                 if self.last_frame is not None and self.last_frame.T_cw is not None:
@@ -137,15 +152,98 @@ class Tracking:
                 kf = kf.parent
             last.set_pose(T_c_ref @ kf.T_cw)
 
+    def low_texture(self, frame: Frame) -> bool:
+        """Few stereo keypoints (blank walls): thresholds written for 1000+ features relax."""
+        if getattr(frame, "n_primary", self.p["n_features"]) < self.p["n_features"]:
+            return True   # the FAST fallback was needed (ORBextractor.n_primary)
+        return int(np.count_nonzero(frame.depth > 0)) < self.p["low_texture_points"]
+
     def track_with_motion_model(self, frame: Frame) -> bool:
         self._update_last_frame()
         frame.set_pose(self.velocity @ self.last_frame.T_cw)
         frame.mp_ids[:] = -1
+        min_n = 10 if self.low_texture(frame) else 20
         n = self.matcher.search_by_projection_last(frame, self.last_frame, self.map, th=7.0)
-        if n < 20:
+        if n < min_n:
             frame.mp_ids[:] = -1
             n = self.matcher.search_by_projection_last(frame, self.last_frame, self.map, th=14.0)
-        if n < 20:
+        if n < min_n:
+            return False
+        Optimizer.pose_optimization(frame, self.map)
+        return self._discard_outliers(frame) >= 10
+
+    def track_local_map_wide(self, frame: Frame) -> bool:
+        """Last resort before LOST (not in ORB-SLAM2): every local-map point projected with the
+        motion-model pose and a wide window (sudden turns, few features: the last frame alone
+        holds too few points)."""
+        self._update_last_frame()
+        frame.set_pose(self.velocity @ self.last_frame.T_cw)
+        frame.mp_ids[:] = -1
+        frame.outlier[:] = False
+        pts = [k.valid_mp_ids(self.map.mp_bad) for k in [self.ref_kf] + self.local_kfs
+               if k is not None and not k.bad]
+        if not pts:
+            return False
+        pts = np.unique(np.concatenate(pts))
+        n, _ = self.matcher.search_local_points(frame, self.map, pts, th=self.p["wide_search_th"])
+        if n < 10:
+            return False
+        Optimizer.pose_optimization(frame, self.map)
+        return self._discard_outliers(frame) >= 10
+
+    def track_last_frame_pnp(self, frame: Frame) -> bool:
+        """Frame-to-frame fallback (not in ORB-SLAM2): descriptors of every stereo keypoint of the
+        last frame, mapped or not, matched against the frame, PnP RANSAC on their 3-D points,
+        then the local map projected with that pose. Needs no motion prior, so it carries sudden
+        turns (pure rotation starts) and low-texture views where few keypoints are map points."""
+        import cv2
+        from .orb import TH_LOW, hamming_matrix
+        last = self.last_frame
+        if last is None or last.T_cw is None:
+            return False
+        self._update_last_frame()
+        st = np.nonzero(last.depth > 0)[0]
+        if len(st) < 10 or frame.N < 10:
+            return False
+        D = hamming_matrix(last.desc[st], frame.desc)
+        b = np.argmin(D, axis=1)
+        d1 = D[np.arange(len(st)), b]
+        D[np.arange(len(st)), b] = 256
+        d2 = D.min(axis=1)
+        ok = (d1 <= TH_LOW) & (d1 < 0.8 * d2)
+        ia, jb = np.nonzero(ok)[0], b[ok]
+        from .matcher import _unique_by, rotation_consistency
+        u_ = _unique_by(jb, d1[ok])
+        ia, jb = ia[u_], jb[u_]
+        if len(ia) >= 10:
+            keep = rotation_consistency(last.angle[st[ia]], frame.angle[jb])
+            ia, jb = ia[keep], jb[keep]
+        if len(ia) < 10:
+            return False
+        Pw = last.unproject_stereo(st[ia])
+        K = np.array([[frame.fx, 0, frame.cx], [0, frame.fy, frame.cy], [0, 0, 1.0]])
+        okp, rvec, tvec, inl = cv2.solvePnPRansac(
+            Pw.astype(np.float64), frame.uv[jb].astype(np.float64), K, None,
+            iterationsCount=200, reprojectionError=3.0, confidence=0.99, flags=cv2.SOLVEPNP_EPNP)
+        if not okp or inl is None or len(inl) < 10:
+            return False
+        T = np.eye(4)
+        T[:3, :3] = cv2.Rodrigues(rvec)[0]
+        T[:3, 3] = tvec.ravel()
+        frame.set_pose(T)
+        frame.mp_ids[:] = -1
+        frame.outlier[:] = False
+        inl = inl.ravel()
+        mp_of = last.mp_ids[st[ia[inl]]]
+        good = (mp_of >= 0) & ~self.map.mp_bad[np.maximum(mp_of, 0)]
+        frame.mp_ids[jb[inl][good]] = mp_of[good]
+        pts = [k.valid_mp_ids(self.map.mp_bad) for k in [self.ref_kf] + self.local_kfs
+               if k is not None and not k.bad]
+        if pts:
+            pts = np.unique(np.concatenate(pts))
+            pts = pts[~np.isin(pts, frame.mp_ids)]
+            self.matcher.search_local_points(frame, self.map, pts, th=3.0)
+        if np.count_nonzero(frame.mp_ids >= 0) < 10:
             return False
         Optimizer.pose_optimization(frame, self.map)
         return self._discard_outliers(frame) >= 10
@@ -270,7 +368,8 @@ class Tracking:
         self.n_matches_inliers = int(np.count_nonzero(inl))
         if frame.id < self.last_reloc_frame_id + self.p["max_frames"] and self.n_matches_inliers < 50:
             return False
-        return self.n_matches_inliers >= 30
+        low = self.low_texture(frame)
+        return self.n_matches_inliers >= self.p["min_inliers_low_texture" if low else "min_inliers"]
 
     # ------------------------------------------------------------------ keyframes
     def need_new_keyframe(self, frame: Frame) -> bool:
@@ -288,12 +387,16 @@ class Tracking:
         tracked = frame.mp_ids >= 0
         n_tracked_close = int(np.count_nonzero(close & tracked))
         n_non_tracked_close = int(np.count_nonzero(close & ~tracked))
-        need_close = n_tracked_close < 100 and n_non_tracked_close > 70
+        low = self.low_texture(frame)
+        # ORB-SLAM2's 100/70 assume 1000+ features; on blank walls every new close point counts
+        min_new = max(10, 0.3 * np.count_nonzero(close)) if low else 70
+        need_close = n_tracked_close < 100 and n_non_tracked_close > min(70, min_new)
         th_ref = 0.4 if n_kfs < 2 else self.p["th_ref_ratio"]
         c1a = frame.id >= self.last_kf_frame_id + max_frames
         c1b = frame.id >= self.last_kf_frame_id + min_frames and idle
         c1c = self.n_matches_inliers < n_ref * 0.25 or need_close
-        c2 = (self.n_matches_inliers < n_ref * th_ref or need_close) and self.n_matches_inliers > 15
+        c2 = (self.n_matches_inliers < n_ref * th_ref or need_close) and \
+            self.n_matches_inliers > (10 if low else 15)
         if (c1a or c1b or c1c) and c2:
             if idle:
                 return True
