@@ -52,7 +52,8 @@ def measurements(scene_name: str, frames: int, rate: float, params: dict, cache:
     path = os.path.join(cache, key + ".npz")
     names = ("T", "disp", "grey", "gt", "surface")
     if os.path.exists(path):
-        d = np.load(path)
+        with np.load(path) as z:
+            d = {k: z[k] for k in names}     # each z[k] decompresses the whole array: once
         return cam, [tuple(d[k][i] for k in names) for i in range(len(d["T"]))]
     scene = make_scene(scene_name)
     stamps, Ts = make_trajectory(scene, duration=duration, rate=rate)

@@ -20,6 +20,9 @@ relative one keeps the same acceptance at every range (``tau_abs`` adds an optio
 Tau trades density for error: lower tau -> fewer, older, more accurate points (and a delay of
 more frames before a new surface appears); higher tau -> denser, earlier, noisier.
 
+Optional planar densification (``densify: plane``, depth/densify.py) also publishes non-converged
+pixels of planes fitted on the converged points (flagged with ``n_obs`` = 0).
+
 Loop closures: the state lives in the keyframe's camera frame, so a corrected keyframe pose
 (:meth:`DepthFilter.set_keyframe_pose`) moves all its points without touching the filter.
 """
@@ -32,6 +35,7 @@ import numpy as np
 
 from ..camera import StereoCamera
 from ..geometry import inv_T, is_valid_T, relative_motion
+from .densify import DENSIFY_DEFAULTS, plane_fill
 
 __all__ = ["DepthFilter", "DepthOutput", "KeyFrameDepth", "FILTER_DEFAULTS", "render_depth"]
 
@@ -62,6 +66,8 @@ FILTER_DEFAULTS: Dict[str, object] = {
     "min_depth": 0.2,
     "max_depth": 8.0,
 }
+FILTER_DEFAULTS.update(DENSIFY_DEFAULTS)   # planar densification (depth/densify.py)
+FILTER_DEFAULTS["densify"] = "off"
 
 _EPS = 1e-6
 
@@ -97,6 +103,9 @@ class KeyFrameDepth:
     n_rej: np.ndarray        # gated (rejected) observations (int32)
     intensity: np.ndarray    # grey value of the pixel where the hypothesis was seen
     frames: int = 0          # frames fused since creation
+    fill_rho: Optional[np.ndarray] = None   # planar densification (grid; NaN = not filled)
+    fill_var: Optional[np.ndarray] = None
+    fill_frame: int = -1                    # kf.frames when it was computed
 
 
 def render_depth(points: np.ndarray, camera: StereoCamera) -> np.ndarray:
@@ -158,6 +167,10 @@ class DepthFilter:
             raise ValueError("interpolation must be 'nearest' or 'bilinear', got %r"
                              % (p["interpolation"],))
         p["stride"] = max(1, int(p["stride"]))
+        if p["densify"] in (False, None, "none", ""):
+            p["densify"] = "off"
+        if p["densify"] not in ("off", "plane"):
+            raise ValueError("densify must be 'plane' or 'off', got %r" % (p["densify"],))
         self.p = p
         w, h = camera.size
         s = p["stride"]
@@ -177,6 +190,7 @@ class DepthFilter:
     def reset(self) -> None:
         """Forget everything (time jump, bag loop, tracking reset)."""
         self.kf: Optional[KeyFrameDepth] = None
+        self._planes = []   # densify memory: (n_map, d_map, box_lo, box_hi) per plane, newest last
         self._next_id = 0
         self._last_stamp: Optional[float] = None
 
@@ -468,8 +482,17 @@ class DepthFilter:
         stats["n_valid"] = int(np.count_nonzero(np.isfinite(kf.mu)))
         stats["n_converged"] = int(np.count_nonzero(conv))
         stats["keyframe_frames"] = kf.frames
+        rho, var = kf.mu, kf.var
+        n_obs = kf.n_obs
+        if self.p["densify"] == "plane":
+            fill = self._densify(kf, conv, stats)
+            if fill is not None:
+                conv = conv | fill
+                rho = np.where(fill, kf.fill_rho, kf.mu)
+                var = np.where(fill, kf.fill_var, kf.var)
+                n_obs = np.where(fill, 0, kf.n_obs)     # 0 marks a planar fill
         c = np.flatnonzero(conv)
-        z = 1.0 / kf.mu[c]
+        z = 1.0 / rho[c]
         if is_new:
             x, y = self._rx[c] * z, self._ry[c] * z
         else:
@@ -481,12 +504,78 @@ class DepthFilter:
                 c, x, y, z = c[keep], x[keep], y[keep], z[keep]
         P = np.stack([x, y, z], axis=1)
         # depth variance (m^2) from the inverse-depth one: var_Z = var_rho / rho^4 (first order)
-        var_z = kf.var[c] / kf.mu[c] ** 4
+        var_z = var[c] / rho[c] ** 4
         stats["n_published"] = int(len(c))
         return DepthOutput(points=np.ascontiguousarray(P, dtype=np.float32),
                            intensity=kf.intensity[c].astype(np.float32),
-                           variance=var_z.astype(np.float32), n_obs=kf.n_obs[c].astype(np.int32),
+                           variance=var_z.astype(np.float32), n_obs=n_obs[c].astype(np.int32),
                            keyframe_id=kf.id, is_new_keyframe=is_new, stats=stats)
+
+    def _densify(self, kf: KeyFrameDepth, conv: np.ndarray, stats) -> Optional[np.ndarray]:
+        """Planar fill of the keyframe's non-converged pixels (depth/densify.py), re-fitted every
+        ``densify_every`` frames of the keyframe; returns the fill mask (None = nothing)."""
+        every = max(1, int(self.p["densify_every"]))
+        if kf.fill_rho is None or kf.frames - kf.fill_frame >= every:
+            shape = self.grid_shape
+            R, t = kf.T_map_kf[:3, :3], kf.T_map_kf[:3, 3]
+            priors = []
+            margin = float(self.p["densify_prior_margin"])
+            for n_w, d_w, lo, hi in self._planes:   # map planes -> rho = a x + b y + c here
+                d_c = d_w - float(n_w @ t)
+                if d_c <= 0.05:
+                    continue
+                th = (R.T @ n_w) / d_c
+                # only inside the map box where the plane was seen with support (+ margin)
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    z = 1.0 / (th[0] * self._rx + th[1] * self._ry + th[2])
+                    Pw = _transform_depths(kf.T_map_kf, self._rx, self._ry, z.astype(np.float32))
+                    allowed = np.ones(len(z), bool)
+                    for k in range(3):
+                        allowed &= (Pw[k] >= lo[k] - margin) & (Pw[k] <= hi[k] + margin)
+                if np.count_nonzero(allowed) >= self.p["densify_min_pixels"]:
+                    priors.append((th, allowed.reshape(shape)))   # (fewer could fill nothing)
+            fill, frho, fvar, st = plane_fill(
+                self._rx.reshape(shape), self._ry.reshape(shape), kf.mu.reshape(shape),
+                kf.var.reshape(shape), kf.n_obs.reshape(shape), conv.reshape(shape), self.p,
+                np.random.default_rng(kf.id * 1000 + kf.frames), priors)
+            kf.fill_rho, kf.fill_var, kf.fill_frame = frho.ravel(), fvar.ravel(), kf.frames
+            stats["densify_planes"] = st["planes"]
+            stats["densify_priors"] = st.get("priors_used", 0)
+            self._remember_planes(st["new_planes"], st["new_regions"], kf)
+        fill = np.isfinite(kf.fill_rho) & ~conv
+        with np.errstate(invalid="ignore"):
+            zmax = self.p["densify_max_depth"] or self.p["max_depth"]
+            fill &= (kf.fill_rho > 1.0 / zmax) & \
+                (kf.fill_rho < 1.0 / self.p["min_depth"])
+        stats["n_densified"] = int(np.count_nonzero(fill))
+        return fill if stats["n_densified"] else None
+
+    def _remember_planes(self, thetas, regions, kf: KeyFrameDepth) -> None:
+        """Keep the planes found in a keyframe for later keyframes: map-frame (normal, offset) and
+        the map box of the pixels they filled here; a plane that matches a remembered one (3 deg,
+        3 cm) replaces it and their boxes are merged."""
+        m = int(self.p["densify_memory"])
+        if m <= 0:
+            return
+        R, t = kf.T_map_kf[:3, :3], kf.T_map_kf[:3, 3]
+        for th, reg in zip(thetas, regions):
+            d_c = 1.0 / float(np.linalg.norm(th))
+            n_w = R @ (np.asarray(th, dtype=float) * d_c)
+            d_w = d_c + float(n_w @ t)
+            th32 = np.asarray(th, dtype=np.float32)
+            z = 1.0 / (th32[0] * self._rx[reg] + th32[1] * self._ry[reg] + th32[2])
+            Pw = np.stack(_transform_depths(kf.T_map_kf, self._rx[reg], self._ry[reg], z), 1)
+            if len(Pw) == 0:
+                continue
+            lo, hi = Pw.min(axis=0), Pw.max(axis=0)
+            keep = []
+            for n, d, l0, h0 in self._planes:
+                if float(n @ n_w) > np.cos(np.radians(3.0)) and abs(d - d_w) < 0.03:
+                    lo, hi = np.minimum(lo, l0), np.maximum(hi, h0)
+                else:
+                    keep.append((n, d, l0, h0))
+            self._planes = keep + [(n_w, d_w, lo, hi)]
+        del self._planes[:-m]
 
     def _elas_only(self, Zf, Vf, If, stats) -> DepthOutput:
         """The ELAS-only baseline: every valid pixel of this frame (on the stride grid)."""
