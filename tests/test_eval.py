@@ -215,3 +215,33 @@ def test_mdr_eval_depth_cli(tmp_path):
     assert r.returncode == 0, r.stderr
     s = json.loads(r.stdout)
     assert abs(100 * s["mean"]["bad2"] - 5.3) < 1.0 and s["n_frames"] == 1
+
+
+def test_map_alignment_short_path_uses_the_first_pose():
+    """A short straight path leaves Umeyama's rotation free: the first pose pair fixes the map."""
+    from mdr_slam.eval import map_alignment
+    from mdr_slam.io import Trajectory
+    from scipy.spatial.transform import Rotation
+    T_align = np.eye(4)
+    T_align[:3, :3] = Rotation.from_euler("zyx", [70, -20, 10], degrees=True).as_matrix()
+    T_align[:3, 3] = [5.0, 3.0, 1.3]
+    est = [np.eye(4) for _ in range(10)]
+    for i, T in enumerate(est):
+        T[0, 3] = 0.01 * i                      # 9 cm along x: positions alone cannot fix a rotation
+    gt = [T_align @ T for T in est]
+    stamps = np.arange(10) * 0.1
+    al = map_alignment(Trajectory.from_matrices(stamps, est), Trajectory.from_matrices(stamps, gt))
+    assert al["method"] == "first_pose"
+    assert np.allclose(al["rotation"], T_align[:3, :3], atol=1e-9)
+    assert np.allclose(al["translation"], T_align[:3, 3], atol=1e-9)
+    # a path spread over a room uses Umeyama over all poses
+    est2 = []
+    for i in range(40):
+        T = np.eye(4)
+        T[:3, 3] = [np.cos(i / 6.0), np.sin(i / 6.0), 0.0]
+        est2.append(T)
+    gt2 = [T_align @ T for T in est2]
+    stamps2 = np.arange(40) * 0.1
+    al2 = map_alignment(Trajectory.from_matrices(stamps2, est2), Trajectory.from_matrices(stamps2, gt2))
+    assert al2["method"] == "umeyama_se3"
+    assert np.allclose(al2["rotation"], T_align[:3, :3], atol=1e-6)

@@ -90,7 +90,7 @@ def run(args) -> int:
 
 def run_ablation(args) -> int:
     import numpy as np
-    from ..eval import ate, map_metrics
+    from ..eval import ate, map_alignment, map_metrics
     from ..io import cloud_xyz, read_cloud, read_tum
     os.makedirs(args.out, exist_ok=True)
     scenes = [s for s in args.scenes.split(",") if s]
@@ -148,9 +148,10 @@ def run_ablation(args) -> int:
             if (args.pose_source or "groundtruth") == "orb":
                 # estimated poses: the map is in the tracker's frame; move it into the ground
                 # truth's by the trajectory's SE(3) alignment (as evo aligns trajectories)
-                traj = ate(read_tum(os.path.join(d, "trajectory.tum")),
-                           read_tum(os.path.join(args.out, "sim_" + scene, "groundtruth.tum")), "se3")
-                al = traj.alignment
+                est_traj = read_tum(os.path.join(d, "trajectory.tum"))
+                gt_traj = read_tum(os.path.join(args.out, "sim_" + scene, "groundtruth.tum"))
+                traj = ate(est_traj, gt_traj, "se3")
+                al = map_alignment(est_traj, gt_traj)
                 est = est @ np.asarray(al["rotation"]).T + np.asarray(al["translation"])
             m = map_metrics(est, gt_xyz, threshold=args.threshold, gt_labels=gt.get("surface"))
             prec, comp = m["accuracy"], m["completeness"]

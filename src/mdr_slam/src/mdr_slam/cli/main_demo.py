@@ -54,7 +54,7 @@ def _step(text):
 
 
 def run(args) -> int:
-    from ..eval import ate, map_metrics
+    from ..eval import ate, map_alignment, map_metrics
     from ..eval.plot import plot_ate
     from ..io import cloud_xyz, read_cloud, read_tum
     from ..viz import save_map_pictures
@@ -89,7 +89,7 @@ def run(args) -> int:
     est_traj = read_tum(os.path.join(demo, "trajectory.tum"))
     traj_res = ate(est_traj, gt_traj, "se3") if len(est_traj) > 2 else None
     if traj_res is not None and args.pose_source == "orb":
-        al = traj_res.alignment
+        al = map_alignment(est_traj, gt_traj)
         xyz = xyz @ np.asarray(al["rotation"]).T + np.asarray(al["translation"])
     gt_map = read_cloud(os.path.join(sample, "gt_map.ply"))
     m = map_metrics(xyz, cloud_xyz(gt_map), gt_labels=gt_map.get("surface")) if len(xyz) else None

@@ -156,3 +156,25 @@ def summary_json(stats: Dict[str, object]) -> str:
     import json
     return json.dumps(stats, indent=2, sort_keys=True)
 
+
+
+def map_alignment(est: Trajectory, gt: Trajectory, max_diff: float = 0.01,
+                  min_spread: float = 0.2) -> Dict[str, object]:
+    """The rigid transform that moves a map built in ``est``'s frame into ``gt``'s, for scoring a
+    map made with estimated poses against a ground-truth map.
+
+    Umeyama SE(3) over all associated positions (as ``ate`` aligns) when they span at least
+    ``min_spread`` metres in two directions; otherwise positions alone leave the rotation
+    undetermined (a short or straight path), and the first associated pose pair fixes it:
+    ``T = T_gt0 inv(T_est0)`` (evo's align_origin).
+    """
+    g, e = associate(est, gt, max_diff=max_diff)
+    xyz = np.asarray(g.positions_xyz)
+    sv = np.linalg.svd(xyz - xyz.mean(axis=0), compute_uv=False) / np.sqrt(max(len(xyz), 1))
+    if len(xyz) >= 3 and sv[1] >= min_spread:
+        out = align(g, e, "se3")
+        out["method"] = "umeyama_se3"
+        return out
+    T = np.asarray(g.poses_se3[0]) @ np.linalg.inv(np.asarray(e.poses_se3[0]))
+    return {"type": "se3", "method": "first_pose", "rotation": T[:3, :3].tolist(),
+            "translation": T[:3, 3].tolist(), "scale": 1.0}
