@@ -268,8 +268,9 @@ def test_depth_node_on_another_machine_feeds_the_map(two_machines, tmp_path):
         assert conns and all(c[2] == "i" and m["depth_ip"] in c[1] for c in conns), res["fusion_bus"]
         assert int(res["fusion"]["map points"]) > 0, res["fusion"]
         assert int(res["fusion"]["clouds integrated"]) >= 3, res["fusion"]
-        # images went out to the depth machine and clouds came back over the veth
-        assert tx1 - tx0[0] > 5e6 and rx1 > 1e5, (tx1, rx1)
+        # images went out to the depth machine and clouds came back over the veth (one 376x240
+        # stereo pair is 180 kB: more than 1 MB is several pairs, far above ROS's control traffic)
+        assert tx1 - tx0[0] > 1e6 and rx1 > 1e5, (tx1, rx1)
         for name, p in procs:
             assert p.poll() is None, "%s exited\n%s" % (name, logs_text())
     finally:
