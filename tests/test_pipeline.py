@@ -190,10 +190,13 @@ def test_bench_live_measures_the_running_nodes(small_sim, tmp_path):
     out = str(tmp_path / "live")
     r = subprocess.run(MDR + ["bench", os.path.join(small_sim, "sequence.bag"), "--out", out,
                               "--pose-source", "groundtruth", "--rate", "2",
-                              "--live-duration", "25"], capture_output=True, text=True,
+                              "--live-duration", "25", "--set", "fusion.publish_rate=2.0"],
+                       capture_output=True, text=True,
                        timeout=180)
     assert r.returncode == 0, r.stdout + r.stderr
     b = json.load(open(os.path.join(out, "bench.json")))
+    import yaml   # --set reaches the live node through its parameter file
+    assert yaml.safe_load(open(os.path.join(out, "fusion.yaml")))["publish_rate"] == 2.0
     for k in ("map_integration_hz", "depth_hz", "pose_hz", "frames_in", "frames_tracked",
               "latency_ms", "cpu_percent", "rss_mb"):
         assert k in b, k

@@ -140,6 +140,28 @@ def _stats(v) -> Dict[str, float]:
             "max": round(float(a.max()), 2)}
 
 
+def _param_files(args) -> list:
+    """``--set NODE.KEY=VALUE`` for the live nodes: each overridden node gets its config file (with
+    the dataset preset) plus the overrides written to ``DIR/<node>.yaml``, passed to the launch."""
+    import yaml
+    from ..pipeline import load_params
+    from .main_run import _overrides
+    out = []
+    preset = getattr(args, "preset", None)
+    if preset:
+        out.append("preset:=" + preset)
+    for node, ov in _overrides(getattr(args, "set", []) or []).items():
+        if not ov:
+            continue
+        params = load_params(node, preset)
+        params.update(ov)
+        path = os.path.abspath(os.path.join(args.out, "%s.yaml" % node))
+        with open(path, "w") as f:
+            yaml.safe_dump(params, f)
+        out.append("%s_params:=%s" % (node, path))
+    return out
+
+
 def run_live(args) -> int:
     import psutil
     os.makedirs(args.out, exist_ok=True)
@@ -171,6 +193,7 @@ def run_live(args) -> int:
         cmd = ["roslaunch", "mdr_slam", "mdr.launch", "bag:=" + bag, "rate:=%g" % args.rate,
                "pose_source:=" + pose_source, "loop:=%s" % ("true" if args.loop else "false"),
                "delay:=3.0"]
+        cmd += _param_files(args)
         log = open(os.path.join(args.out, "launch.log"), "wb")
         launch = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT,
                                   start_new_session=True)
