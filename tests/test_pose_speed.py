@@ -115,14 +115,11 @@ def test_vectorized_stereo_matching_equals_per_keypoint_loop(noise):
     np.testing.assert_allclose(got[1], ref[1], rtol=1e-4)
 
 
-def test_bundle_adjust_first_step_equals_dense_gauss_newton():
-    """One LM step of the Schur-complement solver equals solving the full dense normal equations
-    (cameras and points together) with the same damping."""
-    from mdr_slam.pose.optimizer import _pose_point_jacobians
-    rng = np.random.RandomState(4)
+def _stereo_ba_scene(rng, M, C, noise):
+    """M points seen by C cameras stepping 0.3 m along x: (P, Ts, cam_idx, pt_idx, obs, K) with
+    stereo observations (u, v, u_right) plus ``noise`` px of Gaussian noise."""
     fx = fy = 400.0
     cx, cy, bf = 320.0, 240.0, 40.0
-    M, C = 60, 4
     P = np.column_stack([rng.uniform(-2, 2, M), rng.uniform(-1, 1, M), rng.uniform(3, 8, M)])
     Ts = np.repeat(np.eye(4)[None], C, axis=0)
     Ts[:, 0, 3] = -0.3 * np.arange(C)
@@ -130,8 +127,19 @@ def test_bundle_adjust_first_step_equals_dense_gauss_newton():
     pt_idx = np.tile(np.arange(M), C)
     Pc = P[pt_idx] + Ts[cam_idx, :3, 3]
     u = fx * Pc[:, 0] / Pc[:, 2] + cx
-    v = fy * Pc[:, 1] / Pc[:, 2] + cy
-    obs = np.column_stack([u, v, u - bf / Pc[:, 2]]) + rng.randn(len(u), 3) * 0.3
+    obs = np.column_stack([u, fy * Pc[:, 1] / Pc[:, 2] + cy, u - bf / Pc[:, 2]])
+    obs += rng.randn(*obs.shape) * noise
+    return P, Ts, cam_idx, pt_idx, obs, (fx, fy, cx, cy, bf)
+
+
+def test_bundle_adjust_first_step_equals_dense_gauss_newton():
+    """One LM step of the Schur-complement solver equals solving the full dense normal equations
+    (cameras and points together) with the same damping."""
+    from mdr_slam.pose.optimizer import _pose_point_jacobians
+    rng = np.random.RandomState(4)
+    M, C = 60, 4
+    P, Ts, cam_idx, pt_idx, obs, (fx, fy, cx, cy, bf) = _stereo_ba_scene(rng, M, C, 0.3)
+    u = obs[:, 0]
     stereo = rng.rand(len(u)) < 0.6
     obs[~stereo, 2] = 0.0
     info = np.ones(len(u))
@@ -173,18 +181,9 @@ def test_ba_worker_process_matches_in_thread_and_recovers():
     import signal
     from mdr_slam.pose.optimizer import BAWorker
     rng = np.random.RandomState(5)
-    fx = fy = 400.0
-    cx, cy, bf = 320.0, 240.0, 40.0
     M, C = 1500, 5   # big enough that the abort signal lands long before 10 iterations end
-    P = np.column_stack([rng.uniform(-2, 2, M), rng.uniform(-1, 1, M), rng.uniform(3, 8, M)])
-    Ts = np.repeat(np.eye(4)[None], C, axis=0)
-    Ts[:, 0, 3] = -0.3 * np.arange(C)
-    cam_idx = np.repeat(np.arange(C), M)
-    pt_idx = np.tile(np.arange(M), C)
-    Pc = P[pt_idx] + Ts[cam_idx, :3, 3]
-    u = fx * Pc[:, 0] / Pc[:, 2] + cx
-    obs = np.column_stack([u, fy * Pc[:, 1] / Pc[:, 2] + cy, u - bf / Pc[:, 2]])
-    obs += rng.randn(*obs.shape) * 0.5
+    P, Ts, cam_idx, pt_idx, obs, (fx, fy, cx, cy, bf) = _stereo_ba_scene(rng, M, C, 0.5)
+    u = obs[:, 0]
     stereo = np.ones(len(u), bool)
     fixed = np.zeros(C, bool)
     fixed[0] = True
