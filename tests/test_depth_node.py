@@ -138,7 +138,9 @@ def test_depth_node_pose_from_tf_and_elas_only(rospy_client, start_process):
     sub = rospy.Subscriber("/mdr/depth/points", PointCloud2, got.append)
     sp = StereoPublisher(rospy, prefix)
     br = tf2_ros.TransformBroadcaster()
-    assert wait_for(lambda: sp.connected() and sub.get_num_connections() > 0, 30), node.output()
+    # the node's tf listener must be connected too, or the first frame finds no pose (a race)
+    assert wait_for(lambda: sp.connected() and sub.get_num_connections() > 0
+                    and br.pub_tf.get_num_connections() > 0, 30), node.output()
     left, right = _pair(1)
     base = rospy.Time.now()
     T = np.eye(4)
