@@ -120,8 +120,12 @@ def main():
     ap.add_argument("--rss-clouds", type=int, default=6000, help="clouds for the RSS run (0 = skip)")
     ap.add_argument("--rss-points", type=int, default=30000, help="points per cloud in the RSS run")
     ap.add_argument("--rss-unique", type=int, default=600, help="distinct views in the RSS run")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="VoxelMap parameter, e.g. normal_method=knn (repeatable)")
     ap.add_argument("--rss-only", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    import yaml
+    args.kw = {k: yaml.safe_load(v) for k, v in (kv.split("=", 1) for kv in args.set)}
     if args.rss_only:
         return rss_run(args)
     rng = np.random.default_rng(0)
@@ -132,28 +136,31 @@ def main():
     clouds = [visible_cloud(P, N, Ts[i], rng, args.points) for i in range(args.clouds + 10)]
     print("\n1) integration time vs map size (%d clouds each, after 10 warm-up clouds; the maps "
           "take turns on each cloud)" % args.clouds)
-    print("%10s %10s %10s %10s %10s %10s %12s" % ("filler", "map pts", "median ms", "p90 ms",
-                                                "min ms", "lookups", "cloud->down"))
+    print("%10s %10s %10s %10s %10s %10s %10s %12s" % ("filler", "map pts", "median ms", "p90 ms",
+                                                     "min ms", "cpu ms", "lookups", "cloud->down"))
     # the maps take turns on every cloud, so the machine's load fluctuations hit all sizes alike
     maps = []
     for size in args.sizes:
-        m = VoxelMap(args.voxel)
+        m = VoxelMap(args.voxel, **args.kw)
         m.load(filler(int(size), args.voxel))
         for i in range(10):
             m.integrate(clouds[i], Ts[i], 0.05 * i)
         maps.append(m)
     ts = np.zeros((len(maps), args.clouds))
+    cpu = np.zeros((len(maps), args.clouds))
     look = np.zeros((len(maps), args.clouds))
     down = np.zeros((len(maps), args.clouds))
     for j, i in enumerate(range(10, 10 + args.clouds)):
         for k, m in enumerate(maps):
-            t = time.perf_counter()
+            t, c = time.perf_counter(), time.process_time()
             st = m.integrate(clouds[i], Ts[i], 0.05 * i)
             ts[k, j] = 1e3 * (time.perf_counter() - t)
+            cpu[k, j] = 1e3 * (time.process_time() - c)
             look[k, j], down[k, j] = st.n_lookups, st.n_down
     for k, (size, m) in enumerate(zip(args.sizes, maps)):
-        print("%10d %10d %10.1f %10.1f %10.1f %10d %12s" % (
+        print("%10d %10d %10.1f %10.1f %10.1f %10.1f %10d %12s" % (
             int(size), len(m), np.median(ts[k]), np.percentile(ts[k], 90), ts[k].min(),
+            np.median(cpu[k]),
             look[k].mean(), "%d->%d" % (args.points, down[k].mean())), flush=True)
     if args.rss_clouds > 0:
         # a fresh process, so the RSS is that of a fusion process and not of part 1's maps
@@ -162,7 +169,8 @@ def main():
         subprocess.check_call([sys.executable, os.path.abspath(__file__), "--rss-only",
                                "--voxel", str(args.voxel), "--rss-clouds", str(args.rss_clouds),
                                "--rss-points", str(args.rss_points),
-                               "--rss-unique", str(args.rss_unique)])
+                               "--rss-unique", str(args.rss_unique)] +
+                              sum([["--set", kv] for kv in args.set], []))
 
 
 def rss_run(args):
@@ -170,7 +178,7 @@ def rss_run(args):
     P, N = room_surfaces(rng)
     print("\n2) RSS after %d clouds of the bounded room (20 Hz stamps, %d points each, %d distinct "
           "views replayed), fresh process" % (args.rss_clouds, args.rss_points, args.rss_unique))
-    m = VoxelMap(args.voxel)
+    m = VoxelMap(args.voxel, **args.kw)
     # the robot goes round the room again and again: clouds of the first `rss_unique` poses are
     # generated once and replayed (with new stamps), so the run measures the map, not the renderer
     n_u = min(args.rss_unique, args.rss_clouds)

@@ -52,7 +52,11 @@ DEFAULTS = {
     "radius": 0.0,                  # association radius (m); 0 = voxel_size
     "normal_angle_deg": 45.0,
     "normal_radius": 0.0,           # m; 0 = 4 voxels
-    "normal_max_nn": 16,
+    "normal_max_nn": 16,            # normal_method knn only
+    "normal_method": "grid",        # grid: PCA over grid cells of normal_radius; knn: Open3D
+    "merge_duplicates": True,       # fold a surface's stray samples along its normal (#8)
+    "dup_normal": 0.0,              # m, along the normal; 0 = 1.5 voxels
+    "dup_lateral": 0.0,             # m, across the normal; 0 = 1 voxel
     "confidence": True,             # false: plain voxel grid (ablation)
     "min_confidence": 3,
     "grace": 5.0,
