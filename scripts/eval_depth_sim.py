@@ -3,6 +3,7 @@
 
     python scripts/eval_depth_sim.py [--scenes office corridor] [--frames 80] [--rate 10] [--duration 30]
         [--set tau=0.02 --set stride=2 ...] [--sweep tau=0.01,0.02,0.03] [--cache /tmp/mdr_depth_eval]
+        [--correlation]   # frame-to-frame correlation of ELAS's disparity error per surface label
 
 For each scene: render ``--frames`` stereo pairs along the scene's ground-truth trajectory, run
 ELAS once per pair (cached in ``--cache``, so sweeps re-run only the filter), then run the filter
@@ -116,6 +117,52 @@ def evaluate(cam, frames, params: dict, rate: float) -> dict:
     return res
 
 
+def error_correlation(cam, frames, label: int = 1, lags=(1, 2, 5, 10, 20, 40), starts=(0, 30),
+                      stride: int = 2):
+    """How much of ELAS's disparity error repeats from frame to frame on one surface label.
+
+    For a start frame i and a lag k: every pixel of frame i with that label, a match and a true
+    depth is moved (true depth, true poses) into frame i+k; where it lands on the same surface
+    (true depth within 3 cm) with a match, the two disparity errors are paired. Returns rows
+    (start, lag, pairs, correlation, rms error of one frame, rms of the two-frame mean). A
+    Kalman filter assumes independent errors (correlation 0: averaging n frames divides the rms
+    by sqrt(n)); correlated errors are a bias that no temporal averaging removes."""
+    fB = cam.fx * cam.baseline
+    w, h = cam.size
+    T = [f[0] for f in frames]
+    v, u = np.mgrid[0:h:stride, 0:w:stride]
+    rows = []
+    for i0 in starts:
+        if i0 >= len(frames):
+            continue
+        _, disp, _, gt, surf = frames[i0]
+        zi = gt[::stride, ::stride]
+        m = (zi > 0) & (surf[::stride, ::stride] == label) & (disp[::stride, ::stride] > 0)
+        ei = (disp[::stride, ::stride] - fB / np.where(zi > 0, zi, 1.0))[m]
+        P = np.stack([(u[m] - cam.cx) / cam.fx * zi[m], (v[m] - cam.cy) / cam.fy * zi[m], zi[m]], 1)
+        Pw = P @ T[i0][:3, :3].T + T[i0][:3, 3]
+        for k in lags:
+            j = i0 + k
+            if j >= len(frames):
+                break
+            _, dj, _, gj, _ = frames[j]
+            Tj = np.linalg.inv(T[j])
+            Pc = Pw @ Tj[:3, :3].T + Tj[:3, 3]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                uj = np.rint(cam.fx * Pc[:, 0] / Pc[:, 2] + cam.cx)
+                vj = np.rint(cam.fy * Pc[:, 1] / Pc[:, 2] + cam.cy)
+                ok = (Pc[:, 2] > 0.1) & (uj >= 0) & (uj < w) & (vj >= 0) & (vj < h)
+            uj, vj = uj[ok].astype(np.int64), vj[ok].astype(np.int64)
+            same = (np.abs(gj[vj, uj] - Pc[ok, 2]) < 0.03) & (dj[vj, uj] > 0)
+            a = ei[ok][same]
+            b = dj[vj[same], uj[same]] - fB / Pc[ok, 2][same]
+            if len(a) < 100:
+                continue
+            rows.append((i0, k, len(a), float(np.corrcoef(a, b)[0, 1]), float(np.sqrt(np.mean(a * a))),
+                         float(np.sqrt(np.mean(((a + b) / 2) ** 2)))))
+    return rows
+
+
 def _summ(e, n, ng):
     e = np.asarray(e, dtype=float)
     if len(e) == 0:
@@ -148,6 +195,9 @@ def main(argv=None):
     ap.add_argument("--sweep", default="", metavar="KEY=V1,V2,...",
                     help="also run the filter with each value of one parameter")
     ap.add_argument("--cache", default="/tmp/mdr_depth_eval")
+    ap.add_argument("--correlation", action="store_true",
+                    help="also print the frame-to-frame correlation of ELAS's disparity error on "
+                         "low-texture surfaces (is it noise a filter averages, or a bias?)")
     a = ap.parse_args(argv)
     try:
         from mdr_slam.pipeline import load_params
@@ -172,6 +222,11 @@ def main(argv=None):
     for scene in a.scenes:
         cam, frames = measurements(scene, a.frames, a.rate, params, a.cache, a.scale,
                                     a.duration)
+        if a.correlation:
+            for lab, name in LABEL_NAMES.items():
+                for r in error_correlation(cam, frames, lab):
+                    print("  %s %-11s start %2d lag %2d: %6d pairs, disparity error correlation "
+                          "%5.2f, rms %.2f px one frame, %.2f px mean of two" % ((scene, name) + r))
         for name, p in configs:
             r = evaluate(cam, frames, p, a.rate)
             rows.append(_row(scene, name + (" (%d kf)" % r["keyframes"] if p["temporal"] else ""), r))
