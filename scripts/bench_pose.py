@@ -15,6 +15,10 @@ rate (20 Hz synthetic, 10 Hz KITTI) so LocalMapping works between frames as live
 without synchronous mapping): the one-core cost, far less inflated by a loaded machine than wall
 time. ``--bag BAG --bag-frames N``: also the first N frames of a stereo bag with ground truth
 (e.g. output/sample/sequence.bag, 752x480 at 20 Hz).
+"whole-process CPU" adds every thread of the process (LocalMapping, LoopClosing, BLAS, the
+right-image ORB worker): the pose node's CPU per frame, the figure to hold against the 20 Hz
+budget. ``--drop`` feeds the threaded mode as a live stream to pose_node, which keeps only the
+newest pair: frames that arrive while tracking is busy are skipped and counted.
 Figures depend on the machine's load: run it on an idle machine for real numbers.
 """
 from __future__ import annotations
@@ -122,10 +126,19 @@ class _CpuTimed:
             self.acc.append(1000.0 * (time.thread_time() - c0))
 
 
-def run(cam, frames, stamps, gt, period, threads, params):
+def _process_cpu():
+    import resource
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
+def run(cam, frames, stamps, gt, period, threads, params, drop=False):
     """Per frame: System's wall time (time_ms, track_ms) and the tracking CPU time (the calling
     thread plus the right-image ORB worker, without synchronous LocalMapping/LoopClosing): the
-    one-core cost, which a loaded machine inflates much less than wall time."""
+    one-core cost, which a loaded machine inflates much less than wall time. Also the CPU of the
+    whole process (every thread: mapping, loop closing, BLAS) per frame fed. ``drop`` (threads):
+    a live stream to a node that keeps only the newest frame: frames that arrived while tracking
+    was busy are skipped (counted), as pose_node does."""
     s = System(cam, params=params, threads=threads)
     right, mapping = [], []
     s.extractor_right = _CpuTimed(s.extractor_right, right)   # runs in Frame's worker thread
@@ -133,34 +146,55 @@ def run(cam, frames, stamps, gt, period, threads, params):
         s.local_mapping.spin_sync = _CpuTimed(s.local_mapping.spin_sync, mapping)
         if s.loop_closing is not None:
             s.loop_closing.spin_sync = _CpuTimed(s.loop_closing.spin_sync, mapping)
-    ms, tms, cpu, states = [], [], [], []
-    for t, (l, r) in zip(stamps, frames):
+    ms, tms, cpu, states, pcpu = [], [], [], [], []
+    p_start, w_start = _process_cpu(), time.perf_counter()
+    i, drops = 0, 0
+    while i < len(frames):
         t0 = time.perf_counter()
-        c0, nr, nm = time.thread_time(), len(right), len(mapping)
+        if threads and drop:   # the newest frame that has arrived by now
+            newest = min(int((t0 - w_start) / period), len(frames) - 1)
+            if newest < i:
+                time.sleep(i * period - (t0 - w_start))
+                continue
+            drops += newest - i
+            i = newest
+        t, (l, r) = stamps[i], frames[i]
+        c0, nr, nm, p0 = time.thread_time(), len(right), len(mapping), _process_cpu()
         res = s.track(float(t), l, r)
         cpu.append(1000.0 * (time.thread_time() - c0) + sum(right[nr:]) - sum(mapping[nm:]))
+        pcpu.append(1000.0 * (_process_cpu() - p0))
         ms.append(res.time_ms)
         tms.append(res.track_ms)
         states.append(res.state)
-        if threads:   # feed at the stream rate, as a live camera would
+        i += 1
+        if threads and not drop:   # feed at the stream rate, as a live camera would
             time.sleep(max(0.0, period - (time.perf_counter() - t0)))
     s.shutdown()
+    proc_total = 1000.0 * (_process_cpu() - p_start) / len(frames)
     traj = s.trajectory()
-    return np.array(ms), np.array(tms), np.array(cpu), states, ate_rmse(traj, gt), len(traj)
+    return (np.array(ms), np.array(tms), np.array(cpu), states, ate_rmse(traj, gt), len(traj),
+            np.array(pcpu), proc_total, drops)
 
 
-def report(name, cam, frames, stamps, gt, period, runs, params):
-    for threads in (True, False):
-        all_ms, all_t, all_c, ates = [], [], [], []
+def report(name, cam, frames, stamps, gt, period, runs, params, drop=False):
+    modes = [m for m in (True, False) if not (m and NO_THREADS) and not (not m and ONLY_THREADS)]
+    for threads in modes:
+        all_ms, all_t, all_c, all_p, ates, totals, drops, lost = [], [], [], [], [], [], [], []
         for _ in range(runs):
-            ms, tms, cpu, states, ate, n = run(cam, frames, stamps, gt, period, threads, params)
+            ms, tms, cpu, states, ate, n, pcpu, total, nd = run(
+                cam, frames, stamps, gt, period, threads, params, drop=drop)
             all_ms.append(ms[1:])   # frame 0 is initialisation
             all_t.append(tms[1:])
             all_c.append(cpu[1:])
+            all_p.append(pcpu[1:])
             ates.append(ate)
+            totals.append(total)
+            drops.append(nd)
+            lost.append(states.count("LOST"))
         ms = np.concatenate(all_ms)
         tm = np.concatenate(all_t)
         cp = np.concatenate(all_c)
+        pc = np.concatenate(all_p)
         print("%-16s threads=%-5s %dx%d frames=%d runs=%d | tracking ms: median %.1f p90 %.1f "
               "max %.1f | tracking CPU ms: median %.1f p90 %.1f min %.1f | per call incl. sync "
               "mapping: median %.1f p90 %.1f | tracked %d/%d | ATE %.3f m (runs: %s) | "
@@ -169,7 +203,14 @@ def report(name, cam, frames, stamps, gt, period, runs, params):
                   np.percentile(tm, 90), tm.max(), np.median(cp), np.percentile(cp, 90), cp.min(),
                   np.median(ms), np.percentile(ms, 90), n, len(frames), float(np.median(ates)),
                   " ".join("%.3f" % a for a in ates), os.getloadavg()[0]))
+        print("%-16s threads=%-5s whole-process CPU ms per tracked frame: mean %.1f median %.1f "
+              "p90 %.1f | process CPU per input frame %.1f ms | dropped (newest kept) %s | "
+              "LOST %s" % (name, threads, pc.mean(), np.median(pc), np.percentile(pc, 90),
+                           float(np.mean(totals)), drops if (threads and drop) else "-", lost))
         sys.stdout.flush()
+
+
+NO_THREADS = ONLY_THREADS = False
 
 
 def main(argv=None):
@@ -183,15 +224,22 @@ def main(argv=None):
     ap.add_argument("--loop", action="store_true", help="also the loop-closing scene (slow)")
     ap.add_argument("--bag", default="", help="also a stereo bag with ground truth")
     ap.add_argument("--bag-frames", type=int, default=200)
+    ap.add_argument("--drop", action="store_true",
+                    help="threads: live feed keeping the newest frame (pose_node), count drops")
+    ap.add_argument("--no-threads", action="store_true", help="only the synchronous mode")
+    ap.add_argument("--only-threads", action="store_true", help="only the threaded mode")
     args = ap.parse_args(argv)
+    global NO_THREADS, ONLY_THREADS
+    NO_THREADS, ONLY_THREADS = args.no_threads, args.only_threads
     print("load average at start: %.2f %.2f %.2f (2-core machine shared: figures are indicative)"
           % os.getloadavg())
     if not args.no_synthetic:
-        report("synthetic room", *synthetic(args.frames), args.runs, None)
+        report("synthetic room", *synthetic(args.frames), args.runs, None, args.drop)
     if not args.no_kitti and os.path.isdir(args.kitti):
-        report("KITTI 06 clip", *kitti(args.kitti), args.runs, {"max_frames": 10})
+        report("KITTI 06 clip", *kitti(args.kitti), args.runs, {"max_frames": 10}, args.drop)
     if args.bag:
-        report(os.path.basename(args.bag), *bag_frames(args.bag, args.bag_frames), args.runs, None)
+        report(os.path.basename(args.bag), *bag_frames(args.bag, args.bag_frames), args.runs, None,
+               args.drop)
     if args.loop:
         report_loop(*loop_scene())
     return 0

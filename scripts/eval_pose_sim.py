@@ -10,7 +10,9 @@ offline (``System(threads=False)``, the parameters of config/pose.yaml, as ``mdr
 sequence: frames OK / LOST, LOST events and their recovery time (s from the first LOST frame to
 the next tracked one; "never" when the sequence ends first), ATE (evo, SE(3) Umeyama) in metres
 and as a share of the ground-truth path length, loop closures, and for loop sequences the ATE
-with ``loop_closing: false`` (target: with <= half of without, ATE <= 1 % of the path).
+with ``loop_closing: false`` (target: with <= half of without, ATE <= 1 % of the path); the
+accepted loops (current, matched keyframe id) and each global BA after a loop (keyframes,
+points, outliers, ms).
 LOST frames inside each simulator segment (pure_rotation, corner) are counted separately.
 Prints a Markdown table and writes JSON (default DIR/eval_pose_sim.json).
 """
@@ -109,11 +111,15 @@ def track(bag: str, params: dict) -> dict:
             ms.append(r.time_ms)
         traj = system.trajectory()
         n_loops = int(system.map.n_loop_closures)
+        lc = system.loop_closing
+        gba = [{k: v for k, v in g.items() if k != "moved"}
+               for g in (getattr(lc, "global_ba_runs", []) if lc is not None else [])]
+        loops = [list(x) for x in lc.loops] if lc is not None else []
         n_kfs = len(system.map.good_keyframes())
     finally:
         system.shutdown()
     return {"stamps": np.array(stamps), "states": states, "traj": traj, "loops": n_loops,
-            "keyframes": n_kfs, "ms": np.array(ms)}
+            "keyframes": n_kfs, "ms": np.array(ms), "global_ba": gba, "loop_pairs": loops}
 
 
 def evaluate(name: str, out: str, rate: float, scale: float, compare: bool) -> dict:
@@ -169,6 +175,7 @@ def evaluate(name: str, out: str, rate: float, scale: float, compare: bool) -> d
             "anchored_pos_rmse_m": drift[0], "anchored_pos_max_m": drift[1],
             "anchored_rot_rmse_deg": drift[2], "anchored_rot_max_deg": drift[3],
             "loop_closures": r["loops"], "keyframes": r["keyframes"],
+            "loop_keyframe_pairs": r["loop_pairs"], "global_ba": r["global_ba"],
             "segments": seg, "wall_s": wall,
             "track_ms_median": float(np.median(r["ms"])),
             "track_ms_p90": float(np.percentile(r["ms"], 90)),

@@ -78,3 +78,103 @@ def test_orb_node_tracks_synthetic_stream(rospy_client, start_process, tmp_path)
     # trajectory on shutdown
     node.stop()
     assert os.path.exists(traj_path) and np.loadtxt(traj_path).shape == (len(frames), 8)
+
+
+def test_latest_slot_keeps_the_newest_and_counts_drops():
+    import threading
+    import time
+    from mdr_slam.nodes.pose_node import LatestSlot
+    slot = LatestSlot()
+    assert slot.get(timeout=0.01) is None
+    assert [slot.put(i) for i in range(5)] == [False, True, True, True, True]
+    assert slot.get(timeout=0.01) == 4 and slot.dropped == 4
+    assert slot.get(timeout=0.01) is None          # taken: nothing stale is left behind
+    got = []
+
+    def consumer():                                 # a tracker slower than the stream
+        while True:
+            item = slot.get(timeout=1.0)
+            if item is None:
+                return
+            got.append(item)
+            time.sleep(0.03)
+
+    th = threading.Thread(target=consumer)
+    th.start()
+    for i in range(30):
+        slot.put(i)
+        time.sleep(0.005)
+    th.join(5.0)
+    assert not th.is_alive()
+    assert got[-1] == 29 and got == sorted(got)     # the newest is processed, in order
+    assert len(got) + slot.dropped - 4 == 30 and slot.dropped > 4
+    slot.close()
+    t0 = time.monotonic()
+    assert slot.get(timeout=5.0) is None and time.monotonic() - t0 < 1.0   # close wakes a reader
+    two = LatestSlot(2)                             # max_pending 2: the two newest, oldest first
+    assert [two.put(i) for i in range(4)] == [False, False, True, True] and two.dropped == 2
+    assert [two.get(0.01), two.get(0.01), two.get(0.01)] == [2, 3, None]
+
+
+def test_orb_node_drops_stale_frames_when_busy(rospy_client, start_process):
+    """A burst faster than tracking: the node tracks the newest pair, drops the ones that waited
+    (counted in /diagnostics), and the frames after a gap are still tracked (motion model dt)."""
+    rospy = rospy_client
+    from diagnostic_msgs.msg import DiagnosticArray
+    from mdr_slam import conversions as cv
+    from mdr_slam.camera import StereoCamera
+    from mdr_slam.pose.synthetic import BoxRoom, orbit_trajectory
+    from mdr_slam_msgs.msg import TrackingState
+    from sensor_msgs.msg import CameraInfo, Image
+
+    cam = StereoCamera.from_rectified(480, 320, 300.0, 300.0, 240.0, 160.0, 0.12)
+    room = BoxRoom((3.0, 1.5, 3.0), tex_size=768, seed=3)
+    poses = orbit_trajectory(16, radius=1.0, arc=np.pi / 4)
+    frames = [room.render_stereo(T, cam) for T in poses]
+    node = start_process(["rosrun", "mdr_slam", "pose_node", "_source:=orb", "_threads:=false",
+                          "_n_features:=1000", "__name:=orb_burst",
+                          "left/image:=/b/left/image", "right/image:=/b/right/image",
+                          "left/camera_info:=/b/left/info", "right/camera_info:=/b/right/info"],
+                         "orb_burst")
+    states, diags = [], []
+    subs = [rospy.Subscriber("/mdr/tracking_state", TrackingState, states.append),
+            rospy.Subscriber("/diagnostics", DiagnosticArray, diags.append)]
+    pubs = {n: rospy.Publisher("/b/%s" % n, t, queue_size=100) for n, t in
+            (("left/image", Image), ("right/image", Image), ("left/info", CameraInfo),
+             ("right/info", CameraInfo))}
+    assert wait_for(lambda: all(p.get_num_connections() > 0 for p in pubs.values()) and
+                    all(s.get_num_connections() > 0 for s in subs), 30), node.output()
+    li = cv.model_to_camera_info(cam.left, frame_id="cam")
+    ri = cv.model_to_camera_info(cam.right, frame_id="cam")
+    base = rospy.Time.now()
+    stamps = [base + rospy.Duration(0.05 * (i + 1)) for i in range(len(frames))]
+
+    def send(i):
+        for msg, name in ((li, "left/info"), (ri, "right/info")):
+            msg.header.stamp = stamps[i]
+            pubs[name].publish(msg)
+        pubs["left/image"].publish(cv.numpy_to_image(frames[i][0], "mono8", stamps[i], "cam"))
+        pubs["right/image"].publish(cv.numpy_to_image(frames[i][1], "mono8", stamps[i], "cam"))
+
+    send(0)                                         # initialise on the first frame
+    assert wait_for(lambda: len(states) >= 1, 30), node.output()
+    for i in range(1, len(frames)):                 # then 15 pairs within ~40 ms
+        send(i)
+        rospy.sleep(0.003)
+    assert wait_for(lambda: states and states[-1].header.stamp == stamps[-1], 30), node.output()
+    rospy.sleep(0.5)
+
+    def dropped():
+        for d in diags:
+            for st in d.status:
+                if st.name.endswith("pose"):
+                    kv = {v.key: v.value for v in st.values}
+                    if "frames_dropped_busy" in kv:
+                        yield int(kv["frames_dropped_busy"])
+    assert wait_for(lambda: max(dropped(), default=0) > 0, 5), [d.status for d in diags[-1:]]
+    n_drop = max(dropped())
+    assert node.proc.poll() is None, node.output()
+    assert 2 <= len(states) < len(frames)           # stale pairs were skipped, not queued
+    assert len(states) + n_drop <= len(frames)
+    assert [s.header.stamp for s in states] == sorted(s.header.stamp for s in states)
+    assert all(s.state == TrackingState.OK for s in states), [s.state for s in states]

@@ -210,3 +210,88 @@ def test_ba_worker_process_matches_in_thread_and_recovers():
         proc = w._proc
         w.close()
     assert proc.poll() is not None
+
+
+def _orbit_system(n, params=None):
+    """A System (synchronous mapping) that tracked the first ``n`` frames of a 28-frame quarter
+    orbit in the textured box room (0.05 s apart), with the poses and images of all 28."""
+    from mdr_slam.pose import System
+    cam = StereoCamera.from_rectified(480, 320, 300.0, 300.0, 240.0, 160.0, 0.12)
+    room = BoxRoom((3.0, 1.5, 3.0), tex_size=768, seed=3)
+    poses = orbit_trajectory(28, radius=1.0, arc=np.pi / 2)
+    images = [room.render_stereo(T, cam) for T in poses]
+    s = System(cam, params=params, threads=False)
+    for i in range(n):
+        assert s.track(0.05 * i, *images[i]).state == "OK"
+    return s, poses, images
+
+
+def test_motion_model_uses_the_real_frame_gap():
+    """Frames dropped while the node was busy: the constant-velocity prediction is scaled to the
+    stamp gap (3 periods here), and the frame after the gap is tracked."""
+    from types import SimpleNamespace
+    from scipy.spatial.transform import Rotation
+    from mdr_slam.geometry import inv_T
+    s, poses, images = _orbit_system(12)
+    tr = s.tracking
+    V = tr.velocity
+    assert V is not None and abs(tr.velocity_dt - 0.05) < 1e-9
+    same = tr.predicted_velocity(SimpleNamespace(stamp=tr.last_frame.stamp + 0.05))
+    assert same is V                                   # a regular stream is left untouched
+    P = tr.predicted_velocity(SimpleNamespace(stamp=tr.last_frame.stamp + 0.15))
+    truth = inv_T(poses[14]) @ poses[11]               # T_c14_c11: the camera motion over the gap
+    ang = lambda T: np.linalg.norm(Rotation.from_matrix(T[:3, :3]).as_rotvec())
+    assert ang(P @ inv_T(truth)) < 0.1 * ang(truth)
+    assert np.linalg.norm(P[:3, 3] - truth[:3, 3]) < 0.1 * np.linalg.norm(truth[:3, 3])
+    assert ang(V @ inv_T(truth)) > 0.5 * ang(truth)   # unscaled, it would be 2/3 off
+    r = s.track(0.05 * 14, *images[14])               # frames 12 and 13 dropped
+    assert r.state == "OK"
+    T_true = inv_T(poses[0]) @ poses[14]
+    assert np.linalg.norm(r.T_map_cam[:3, 3] - T_true[:3, 3]) < 0.03
+    s.shutdown()
+
+
+def test_relocalization_is_bounded_per_frame():
+    """LOST on an unknown view: with no time budget one candidate keyframe is tried per frame,
+    and the next LOST frame tries another; with a large budget every candidate is tried."""
+    s, poses, images = _orbit_system(12, params={"loop_closing": False, "reloc_max_ms": 0.0,
+                                                  "reset_if_lost_below_kfs": 0})
+    n_kfs = len(s.map.good_keyframes())
+    assert n_kfs >= 3
+    rng = np.random.RandomState(7)
+    noise = [(rng.randint(0, 256, images[0][0].shape).astype(np.uint8),) * 2 for _ in range(3)]
+    s.tracking.state, s.tracking.velocity = "LOST", None
+    tried = []
+    for k in range(2):
+        r = s.track(1.0 + 0.05 * k, *noise[k])
+        assert r.state == "LOST" and s.tracking.n_reloc_tried == 1
+        tried.append(set(s.tracking.reloc_tried))
+    assert len(tried[1]) == 2 and tried[0] < tried[1]   # a different keyframe the second time
+    s.tracking.p["reloc_max_ms"] = 1e6
+    s.tracking.reloc_tried.clear()
+    r = s.track(1.2, *noise[2])
+    assert r.state == "LOST" and s.tracking.n_reloc_tried == min(n_kfs, s.p["reloc_candidates"])
+    r = s.track(1.25, *images[8])                       # a known view: relocalized
+    assert r.state == "RELOCALIZED" and not s.tracking.reloc_tried
+    s.shutdown()
+
+
+def test_hamming_knn2_equals_full_matrix():
+    """cv2.batchDistance's two nearest (relocalization, reference-keyframe and frame-to-frame
+    matching) against the full Hamming matrix: same distances, same best index (ties to the
+    lower index, as np.argmin), and a one-column input."""
+    from mdr_slam.pose.orb import hamming_knn2, hamming_matrix
+    rng = np.random.RandomState(8)
+    a = rng.randint(0, 256, (300, 32)).astype(np.uint8)
+    b = rng.randint(0, 256, (700, 32)).astype(np.uint8)
+    b[100:110] = a[:10]
+    b[200:210] = a[:10]                      # exact ties: the lower index wins
+    d, i = hamming_knn2(a, b)
+    D = hamming_matrix(a, b)
+    np.testing.assert_array_equal(d, np.sort(D, axis=1)[:, :2])
+    np.testing.assert_array_equal(i[:, 0], np.argmin(D, axis=1))
+    assert i[:10, 0].tolist() == list(range(100, 110)) and (d[:10] == 0).all()
+    d1, i1 = hamming_knn2(a[:5], b[:1])
+    np.testing.assert_array_equal(d1[:, 0], D[:5, 0])
+    assert (d1[:, 1] == 256).all() and (i1[:, 1] == -1).all()
+    assert hamming_knn2(a[:0], b)[0].shape == (0, 2)

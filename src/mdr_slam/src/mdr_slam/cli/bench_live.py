@@ -194,6 +194,7 @@ def run_live(args) -> int:
                "pose_source:=" + pose_source, "loop:=%s" % ("true" if args.loop else "false"),
                "delay:=3.0"]
         cmd += _param_files(args)
+        cmd += list(getattr(args, "launch_arg", None) or [])
         log = open(os.path.join(args.out, "launch.log"), "wb")
         launch = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT,
                                   start_new_session=True)
@@ -394,6 +395,7 @@ def _summarize(args, bag, lst: "_Listener", samples, elapsed, pose_source) -> di
     all_samples = samples
     samples = [s for s in samples if t0 <= s["t"] <= t1 + 1.0] or samples
     r["depth_dropped"] = fdiag("depth", "dropped")
+    r["pose_dropped_busy"] = fdiag("pose", "frames_dropped_busy")   # newest pair kept
     r["map_points"] = fdiag("fusion", "map points")
     cpu, rss = OrderedDict(), OrderedDict()
     tot_cpu = np.zeros(len(samples))

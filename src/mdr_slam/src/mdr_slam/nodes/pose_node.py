@@ -20,9 +20,12 @@ DEFAULTS = {
     "publish_tf": True,
     "publish_odom_tf": True,       # False: only map -> odom (robot odometry owns odom -> base)
     "path_max_length": 100000,
+    "path_period": 0.5,            # /mdr/path at most this often (s): its size grows with the run
+    "blas_threads": 1,             # BLAS threads of this process (0: library default)
     "calib": "",                   # calibration file(s) instead of camera_info
     "sync_queue_size": 10,
     "sync_slop": 0.0,              # 0 = exact stamps (TimeSynchronizer)
+    "max_pending": 1,              # stereo pairs waiting for the tracker; older ones are dropped
     "threads": True,
     "trajectory_path": "",
     "trajectory_format": "",
@@ -47,6 +50,12 @@ class PoseRelay:
         self.static_tf = tf2_ros.StaticTransformBroadcaster() if p["publish_tf"] else None
         self.path = Path()
         self.path.header.frame_id = p["map_frame"]
+        self._path_sent = -1e9             # monotonic time of the last /mdr/path
+        self._path_dirty = False
+        self._path_lock = __import__("threading").Lock()   # the timer thread publishes it too
+        if float(p.get("path_period", 0)) > 0:   # the last poses of a burst go out too
+            self._path_timer = rospy.Timer(rospy.Duration(float(p["path_period"])),
+                                           lambda _e: self._flush_path())
         self.guard = StampGuard()
         self.clock = ClockWatch()          # ROS time jumping back (bag loop): a new timeline
         self.warn = Throttled()
@@ -111,6 +120,7 @@ class PoseRelay:
         stat.add("drops", str(sum(v for k, v in self.warn.counts.items()
                                   if k not in ("back", "calib_change"))))
         stat.add("tracking_time_ms", "%.1f" % t["time_ms"])
+        stat.add("frames_dropped_busy", str(self.warn.counts.get("busy", 0)))   # newest kept
         stat.add("frames_lost", str(t["lost"]))
         stat.add("keyframes", str(t["keyframes"]))
         stat.add("loop_closures", str(t["loop_closures"]))
@@ -120,6 +130,19 @@ class PoseRelay:
             stat.add("skipped: " + k, str(v))
         self.health.add_to(stat)
         return stat
+
+    def _flush_path(self, throttled: bool = False) -> None:
+        """Publish /mdr/path when it changed, at most every ``path_period`` s when throttled
+        (serializing thousands of poses on every frame would cost the tracker its CPU)."""
+        import time
+        with self._path_lock:
+            now = time.monotonic()
+            if not self._path_dirty or (throttled and now - self._path_sent <
+                                        float(self.p.get("path_period", 0))):
+                return
+            self._path_dirty = False
+            self._path_sent = now
+            self.pub_path.publish(self.path)
 
     def publish(self, stamp, T_map_cam: np.ndarray, T_map_odom: np.ndarray = None) -> None:
         from nav_msgs.msg import Odometry
@@ -136,7 +159,8 @@ class PoseRelay:
             return
         if jumped:
             self.warn("back", "time went backwards (bag loop?); clearing the path")
-            del self.path.poses[:]
+            with self._path_lock:
+                del self.path.poses[:]
         if state == "duplicate":
             self.warn("dup", "duplicate pose stamp %.3f; skipped" % stamp.to_sec())
             return
@@ -151,11 +175,13 @@ class PoseRelay:
         odom.child_frame_id = p["base_frame"]
         odom.pose.pose = matrix_to_pose(T_odom_base)   # map -> odom is identity for the relay
         self.pub_odom.publish(odom)
-        self.path.header.stamp = stamp
-        self.path.poses.append(ps)
-        if len(self.path.poses) > p["path_max_length"]:
-            del self.path.poses[: len(self.path.poses) - p["path_max_length"]]
-        self.pub_path.publish(self.path)
+        with self._path_lock:
+            self.path.header.stamp = stamp
+            self.path.poses.append(ps)
+            if len(self.path.poses) > p["path_max_length"]:
+                del self.path.poses[: len(self.path.poses) - p["path_max_length"]]
+            self._path_dirty = True
+        self._flush_path(throttled=True)
         if self.tf is not None:
             tfs = [matrix_to_transform_stamped(T_map_odom, stamp, p["map_frame"], p["odom_frame"])]
             if p.get("publish_odom_tf", True):
@@ -166,6 +192,50 @@ class PoseRelay:
         self.n_published += 1
         self.rate.tick()
         self.last_latency = (rospy.Time.now() - stamp).to_sec()
+
+
+class LatestSlot:
+    """A mailbox of ``capacity`` frames between the subscriber callbacks and the tracking thread:
+    ``put`` on a full box drops the oldest waiting frame (counted), so the tracker never works
+    through a backlog of stale frames. capacity 1 (default): always the newest frame; 2-3 absorb
+    a slow frame (keyframe, map-lock wait) without a gap, at most that many frames late."""
+
+    def __init__(self, capacity: int = 1):
+        import threading
+        from collections import deque
+        self._cv = threading.Condition()
+        self._items = deque()
+        self.capacity = max(1, int(capacity))
+        self._closed = False
+        self.dropped = 0
+
+    def put(self, item) -> bool:
+        """Store ``item``; True when a frame that was never taken had to go (a drop)."""
+        with self._cv:
+            dropped = len(self._items) >= self.capacity
+            if dropped:
+                self._items.popleft()
+                self.dropped += 1
+            self._items.append(item)
+            self._cv.notify()
+            return dropped
+
+    def get(self, timeout=None):
+        """The oldest waiting item (waiting up to ``timeout`` s for one), or None (timeout,
+        closed)."""
+        with self._cv:
+            if not self._items and not self._closed:
+                self._cv.wait(timeout)
+            return self._items.popleft() if self._items else None
+
+    def close(self) -> None:
+        with self._cv:
+            self._closed = True
+            self._cv.notify_all()
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
 
 
 _STATE_CODES = {"NOT_INITIALIZED": 0, "OK": 1, "LOST": 2, "RELOCALIZED": 3}
@@ -213,6 +283,12 @@ class OrbNode:
             self.sync = message_filters.ApproximateTimeSynchronizer(subs, qs, float(p["sync_slop"]))
         else:
             self.sync = message_filters.TimeSynchronizer(subs, qs)
+        # the callbacks only hand the newest pair to the tracking thread (LatestSlot): a frame
+        # arriving while tracking is busy replaces the waiting one instead of queueing
+        self.slot = LatestSlot(int(p["max_pending"]))
+        self.worker = __import__("threading").Thread(target=self._work, name="tracking",
+                                                     daemon=True)
+        self.worker.start()
         self.sync.registerCallback(self.on_stereo)
         rospy.loginfo("pose_node: ORB tracking on %s + %s", rospy.resolve_name("left/image"),
                       rospy.resolve_name("right/image"))
@@ -240,8 +316,23 @@ class OrbNode:
         return image_to_mono8(msg)   # refuses 16UC1/32FC1 (depth images) and malformed data
 
     def on_stereo(self, left_msg, right_msg, left_info=None, right_info=None):
-        from ..conversions import ConversionError
+        if self.slot.put((left_msg, right_msg, left_info, right_info)):
+            self.warn("busy", "tracking busy: the oldest waiting stereo pair was dropped",
+                      level="info")
+
+    def _work(self) -> None:
         import rospy
+        while not self.slot.closed and not rospy.is_shutdown():
+            item = self.slot.get(timeout=0.5)
+            if item is None:
+                continue
+            try:
+                self.process(*item)
+            except Exception as e:   # never die on input: log, drop this frame
+                self.warn("track", "frame skipped: %r" % (e,), level="err")
+
+    def process(self, left_msg, right_msg, left_info=None, right_info=None):
+        from ..conversions import ConversionError
         with self.lock:
             stamp = left_msg.header.stamp
             cam = self.camera if left_info is None else self._camera_from_info(left_info, right_info)
@@ -366,6 +457,8 @@ class OrbNode:
                 rospy.logerr("pose_node: could not write the trajectory: %s", e)
 
     def shutdown(self) -> None:
+        self.slot.close()
+        self.worker.join(timeout=10.0)
         with self.lock:
             self._save_on_exit()
             if self.system is not None:
@@ -378,6 +471,14 @@ def main():
     from ..conversions import ConversionError, pose_stamped_to_matrix
     rospy.init_node("pose_node")
     p = get_params(DEFAULTS)
+    if int(p["blas_threads"]) > 0:
+        # one BLAS thread: OpenBLAS's second thread mostly spins on the small BA/PnP products
+        # and takes CPU from the depth and fusion nodes on a 2-core machine
+        try:
+            from threadpoolctl import threadpool_limits
+            threadpool_limits(int(p["blas_threads"]), user_api="blas")
+        except Exception as e:   # noqa: BLE001  (threadpoolctl missing: library default)
+            rospy.logwarn("pose_node: BLAS threads not limited: %s", e)
     relay = PoseRelay(p)
     if p["source"] == "groundtruth":
         def on_gt(msg):

@@ -10,7 +10,13 @@ matches. Correction: the current keyframe's covisible group is moved by the loop
 duplicate points are fused, and an SE(3) pose graph over the essential graph (spanning tree,
 strong covisibility edges >= 100, loop edges) is optimised with GTSAM BetweenFactorPose3; every
 map point follows its reference keyframe. The corrected keyframe poses are reported (reason
-``loop_closure``) so depth and fusion re-anchor.
+``loop_closure``) so depth and fusion re-anchor. Pose-graph edges carry information from the
+map points they share (``pose_graph_weights``). Then a global bundle adjustment over every
+keyframe and point (``global_ba``, ORB-SLAM2 RunGlobalBundleAdjustment; sparse Schur solver in
+optimizer.global_bundle_adjustment) refines the result by the observations themselves; its
+corrections are reported as ``loop_closure`` too. A verified loop whose correction is larger than
+any plausible drift (``loop_max_drift`` x the keyframe path since the match, or
+``loop_max_rotation_deg``) is refused: repeated bays passed the geometric check.
 """
 from __future__ import annotations
 
@@ -87,6 +93,8 @@ class LoopClosing:
         self.min_consistency = int(params.get("loop_consistency", 2))
         self.min_inliers = 20
         self.loops: List[tuple] = []               # accepted (current kf id, loop kf id)
+        self.global_ba_runs: List[dict] = []       # global_bundle_adjustment summaries (+ ms)
+        self.rejected: List[tuple] = []            # (kf, cand, moved m, turned deg, path m)
 
     # ------------------------------------------------------------------ queue / thread
     def insert_keyframe(self, kf) -> None:
@@ -137,14 +145,39 @@ class LoopClosing:
 
     # ------------------------------------------------------------------ per keyframe
     def process(self, kf) -> None:
+        closed = False
         with self.map.lock:
             if kf.bad:
                 return
             bow = self.bow(kf)
             cand = self.detect_loop(kf, bow)
             if cand is not None:
-                self.try_close(kf, cand)
+                closed = self.try_close(kf, cand)
             self.db.add(kf.id, bow)
+        if closed and self.p.get("global_ba", True):
+            self.run_global_ba()
+
+    def run_global_ba(self) -> dict:
+        """Global bundle adjustment after a loop correction (ORB-SLAM2 RunGlobalBundleAdjustment):
+        the pose graph spreads the loop error by edge count, the full BA by the information of
+        every observation, so segments tracked on few points (blank walls) take the larger share
+        of the correction. In threaded mode the map lock is released while the solver runs
+        (tracking goes on; keyframes and points made meanwhile follow their ancestors); the
+        corrected keyframe poses are reported like the loop correction."""
+        import time
+        from .optimizer import global_bundle_adjustment
+        t0 = time.perf_counter()
+        res = global_bundle_adjustment(   # the first keyframe holds the map frame (ORB-SLAM2)
+            self.map, iterations=int(self.p.get("global_ba_iterations", 20)),
+            abort=(lambda: self.stop_flag) if self.system.threads else None,
+            lock_solve=not self.system.threads)
+        res["ms"] = 1000.0 * (time.perf_counter() - t0)
+        self.global_ba_runs.append(res)
+        with self.map.lock:
+            self.corrections.append(("loop_closure", {k: self.map.keyframes[k].T_cw.copy()
+                                                      for k in res["moved"]
+                                                      if k in self.map.keyframes}))
+        return res
 
     def detect_loop(self, kf, bow):
         mp = self.map
@@ -154,8 +187,19 @@ class LoopClosing:
         conn = [k for k in kf.connections if k in mp.keyframes and not mp.keyframes[k].bad]
         scores = [bow_score_safe(bow, self.bow(mp.keyframes[k])) for k in conn]
         min_score = min(scores) if scores else 0.0
-        # connected and very recent keyframes are not loops (ORB-SLAM2 excludes the connected)
-        exclude = set(conn) | {kf.id} | {k for k in self.db.bows if k > kf.id - 5}
+        # connected and recent keyframes are not loops (ORB-SLAM2 excludes the connected). On
+        # blank walls consecutive keyframes share too few points to be connected, yet they share
+        # the most words with the current one: they filled the candidate list and cost a
+        # geometric verification each (office loop seed 1: 34 failed verifications, most
+        # against keyframes 1-2 s old; 18 with this). So the neighbours' neighbours and every
+        # keyframe of the last loop_min_age seconds are excluded too.
+        near = set(conn)
+        for k in conn:
+            near |= set(mp.keyframes[k].connections)
+        min_age = float(self.p.get("loop_min_age", 3.0))
+        exclude = near | {kf.id} | {k for k in self.db.bows if k > kf.id - 5} | \
+            {k for k in self.db.bows if k in mp.keyframes and
+             kf.stamp - mp.keyframes[k].stamp < min_age}
         cands = [k for k, s in self.db.query(bow, exclude=exclude, min_score=min_score, top=5)]
         # consistency: a candidate's group (it + its connections) must overlap a group that was
         # detected for the previous keyframes, min_consistency times in a row
@@ -184,10 +228,31 @@ class LoopClosing:
             if res is None:
                 continue
             S, cur_ids, loop_ids, new_kp, new_ids = res
+            if not self.plausible_correction(kf, cand, S):
+                continue
             self.correct_loop(kf, cand, S, cur_ids, loop_ids, new_kp, new_ids)
             self.consistent_groups = []
             return True
         return False
+
+    def plausible_correction(self, kf, cand, S) -> bool:
+        """Drift gate against false loops in repetitive or symmetric places (garage seed 4: two
+        bays 11.7 m apart and turned 180 deg passed the geometric verification): the correction
+        may move the current keyframe by at most loop_max_drift times the keyframe path
+        travelled since the candidate, and turn it by at most loop_max_rotation_deg."""
+        mp = self.map
+        ids = sorted(k.id for k in mp.good_keyframes() if cand.id <= k.id <= kf.id)
+        P = np.array([mp.keyframes[k].T_wc[:3, 3] for k in ids])
+        path = float(np.sum(np.linalg.norm(np.diff(P, axis=0), axis=1))) if len(P) > 1 else 0.0
+        p = kf.T_wc[:3, 3]
+        moved = float(np.linalg.norm(S[:3, :3] @ p + S[:3, 3] - p))
+        cos = np.clip((np.trace(S[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+        rot = float(np.degrees(np.arccos(cos)))
+        ok = moved <= float(self.p.get("loop_max_drift", 0.3)) * max(path, 1.0) and \
+            rot <= float(self.p.get("loop_max_rotation_deg", 45.0))
+        if not ok:
+            self.rejected.append((kf.id, cand.id, moved, rot, path))
+        return ok
 
     def compute_se3(self, kf, cand):
         """World correction S (T_w_w') with cand's points ~ S * kf's points, and matched ids."""
@@ -261,22 +326,31 @@ class LoopClosing:
         # essential graph: spanning tree and strong covisibility edges measured before the
         # correction (relative poses inside the moved group are unchanged by S), loop edges now
         poses = {k.id: k.T_wc for k in mp.good_keyframes()}
+        # edge information: with pose_graph_weights, shared map points / 100 (a link tracked on
+        # a blank wall over 20 points is weaker than one over 500), loop edges by their inliers
+        weighted = bool(self.p.get("pose_graph_weights", True))
+
+        def wt(n):
+            return max(float(n), 15.0) / 100.0 if weighted else None
+        n_loop = int(len(cur_ids)) + int(len(new_kp))
         edges = []
         for k in mp.good_keyframes():
             par = k.parent
             while par is not None and par.bad:
                 par = par.parent
             if par is not None and par.id in poses and par.id != k.id:
-                edges.append((par.id, k.id, inv_T(old_wc[par.id]) @ old_wc[k.id]))
+                edges.append((par.id, k.id, inv_T(old_wc[par.id]) @ old_wc[k.id],
+                              wt(k.connections.get(par.id, 15))))
             for o, w in k.connections.items():
                 if o > k.id and w >= 100 and o in poses:
-                    edges.append((k.id, o, inv_T(old_wc[k.id]) @ old_wc[o]))
+                    edges.append((k.id, o, inv_T(old_wc[k.id]) @ old_wc[o], wt(w)))
             for o in k.loop_edges:
                 if o > k.id and o in poses:
-                    edges.append((k.id, o, inv_T(poses[k.id]) @ poses[o]))
+                    edges.append((k.id, o, inv_T(poses[k.id]) @ poses[o], wt(n_loop)))
         for a_, b_ in loop_links:
             if a_ in poses and b_ in poses:
-                edges.append((a_, b_, inv_T(poses[a_]) @ poses[b_]))
+                edges.append((a_, b_, inv_T(poses[a_]) @ poses[b_],
+                              wt(mp.keyframes[a_].connections.get(b_, 15))))
         new = Optimizer.optimize_essential_graph(poses, edges, fixed=cand.id)
         # map points follow their reference keyframe: P' = T_new T_used^-1 P
         owner = np.full(mp.n, -1, dtype=np.int64)

@@ -182,9 +182,10 @@ class Map:
         if len(ids) == 0:
             return
         self.mp_bad[ids] = True
-        for kf in self.keyframes.values():
-            hit = np.isin(kf.mp_ids, ids)
-            kf.mp_ids[hit] = -1
+        dead = np.zeros(self.n + 1, dtype=bool)   # one slot more: index -1 (no point) stays False
+        dead[ids] = True
+        for kf in self.keyframes.values():   # a lookup per keyframe, not np.isin's sort
+            kf.mp_ids[dead[kf.mp_ids]] = -1
         self.mp_nobs[ids] = 0
 
     def observers(self, mp_id: int) -> List[KeyFrame]:

@@ -14,7 +14,7 @@ from typing import Optional, Tuple
 
 import numpy as np
 
-from .orb import TH_HIGH, TH_LOW, hamming, hamming_matrix
+from .orb import TH_HIGH, TH_LOW, hamming, hamming_knn2
 
 __all__ = ["ORBmatcher"]
 
@@ -178,20 +178,15 @@ class ORBmatcher:
     def search_by_descriptors(self, kf, frame, map_, ratio: float = 0.7,
                               th: int = TH_LOW) -> Tuple[np.ndarray, np.ndarray]:
         """Brute-force matching of ``kf``'s map-point keypoints against the frame's free keypoints
-        (stands in for SearchByBoW: BLAS Hamming matrix, ratio test, mutual uniqueness, rotation
+        (stands in for SearchByBoW: two nearest by cv2.batchDistance, ratio test, mutual uniqueness, rotation
         histogram). Returns (frame keypoint indices, map point ids)."""
         sel = np.nonzero(kf.mp_ids >= 0)[0]
         sel = sel[~map_.mp_bad[kf.mp_ids[sel]]]
         free = np.nonzero(frame.mp_ids < 0)[0]
         if len(sel) == 0 or len(free) == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        D = hamming_matrix(kf.desc[sel], frame.desc[free])
-        if D.shape[1] >= 2:
-            part = np.partition(D, 1, axis=1)
-            d1, d2 = part[:, 0], part[:, 1]
-        else:
-            d1, d2 = D[:, 0], np.full(len(D), 256)
-        b = np.argmin(D, axis=1)
+        d12, b12 = hamming_knn2(kf.desc[sel], frame.desc[free])
+        d1, d2, b = d12[:, 0], d12[:, 1], b12[:, 0]
         ok = (d1 <= th) & (d1 < ratio * d2)
         ia, jb, dd = np.nonzero(ok)[0], b[ok], d1[ok]
         u_ = _unique_by(jb, dd)

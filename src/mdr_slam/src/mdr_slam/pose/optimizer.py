@@ -12,6 +12,7 @@ Huber noise, BetweenFactorPose3, Levenberg-Marquardt), as the brief asks: well-k
 """
 from __future__ import annotations
 
+import itertools
 import os
 import sys
 from typing import Dict, List, Optional, Tuple
@@ -22,7 +23,7 @@ from scipy.spatial.transform import Rotation
 from ..geometry import inv_T, make_T
 
 __all__ = ["Optimizer", "BAWorker", "bundle_adjust", "normalize_pose", "CHI2_MONO", "CHI2_STEREO",
-           "project_residuals"]
+           "project_residuals", "bundle_adjust_sparse", "global_bundle_adjustment"]
 
 CHI2_MONO = 5.991
 CHI2_STEREO = 7.815
@@ -82,14 +83,17 @@ def _pose_point_jacobians(Pc, R, stereo, fx, fy, bf):
 
 def bundle_adjust(Ts: np.ndarray, fixed: np.ndarray, P: np.ndarray, cam_idx: np.ndarray,
                   pt_idx: np.ndarray, obs: np.ndarray, stereo: np.ndarray, info: np.ndarray,
-                  intr, iterations: int = 10, lm_lambda: float = 1e-3, abort=None):
+                  intr, iterations: int = 10, lm_lambda: float = 1e-3, abort=None,
+                  tol: float = 0.0):
     """Robust (Huber) Levenberg-Marquardt bundle adjustment with the Schur complement.
 
     Poses ``Ts`` (C, 4, 4) T_cw (``fixed`` ones held), points ``P`` (M, 3); observations (u, v, uR)
     with stereo flag and information 1/sigma^2. The point blocks are eliminated (scipy.sparse
     block products), leaving a dense 6C x 6C camera system: the standard BA structure (as g2o in
     ORB-SLAM2), vectorized so a local BA with ~10k observations takes tens of milliseconds.
-    Half the iterations run, outliers (chi2 above 95 %) are dropped, the rest run again.
+    Half the iterations run, outliers (chi2 above 95 %) are dropped, the rest run again. With
+    ``tol`` > 0 a round ends early once a step lowers the robust cost by less than ``tol`` times
+    its value (converged: the remaining iterations would move nothing that matters).
     """
     import scipy.sparse as sp
     fx, fy, cx, cy, bf = intr
@@ -131,15 +135,17 @@ def bundle_adjust(Ts: np.ndarray, fixed: np.ndarray, P: np.ndarray, cam_idx: np.
     pt_ov = pt_idx[ovi]
     w_flat = ((6 * oc[:, None, None] + np.arange(6)[None, :, None]) * (3 * M) +
               3 * pt_ov[:, None, None] + np.arange(3)[None, None, :])
+    cam_ar = np.arange(nv)
 
-    for it in range(iterations):
+    cur = residuals(Ts, P)
+    it = 0
+    while it < iterations:
         if abort is not None and it > 0 and abort():
             break   # a new keyframe is waiting (ORB-SLAM2 mbAbortBA): keep the steps taken so far
+        e, Pc, R = cur
         if it == half:   # ORB-SLAM2: optimise, drop outliers, optimise again
-            e, Pc, _ = residuals(Ts, P)
             _, chi2 = robust_cost(e)
             active &= (chi2 <= chi2_th) & (Pc[:, 2] > 0)
-        e, Pc, R = residuals(Ts, P)
         cost, chi2 = robust_cost(e)
         s = np.sqrt(np.maximum(chi2, 1e-12))
         w = info * np.where(s > delta, delta / s, 1.0) * active
@@ -165,8 +171,8 @@ def bundle_adjust(Ts: np.ndarray, fixed: np.ndarray, P: np.ndarray, cam_idx: np.
                 WVd = np.zeros((6 * nv, 3 * M))
                 WVd.ravel()[w_flat.ravel()] = (Wb @ Vinv[pt_ov]).ravel()
                 S = -(WVd @ Wd.T)
-                for c in range(nv):   # 6x6 diagonal blocks (a loop over cameras, not points)
-                    S[6 * c:6 * c + 6, 6 * c:6 * c + 6] += Hcc_d[c]
+                S4 = S.reshape(nv, 6, nv, 6)          # a view: add the 6x6 diagonal blocks
+                S4[cam_ar, :, cam_ar, :] += Hcc_d
                 rhs = -bc.ravel() + WVd @ bp.ravel()
                 try:
                     dc = np.linalg.solve(S, rhs).reshape(nv, 6)
@@ -178,20 +184,28 @@ def bundle_adjust(Ts: np.ndarray, fixed: np.ndarray, P: np.ndarray, cam_idx: np.
                 dc = np.zeros((0, 6))
                 dp = -(Vinv @ bp[:, :, None])[:, :, 0]
             Ts_try = Ts.copy()
-            for c in range(nv):
-                d = dc[c]
-                Ts_try[var[c]] = make_T(Rotation.from_rotvec(d[3:]).as_matrix(), d[:3]) @ Ts[var[c]]
+            if nv:   # left-multiplied update [exp(phi) | rho] T, all cameras at once
+                dR = Rotation.from_rotvec(dc[:, 3:]).as_matrix()
+                Ts_try[var, :3, :3] = dR @ Ts[var, :3, :3]
+                Ts_try[var, :3, 3] = (dR @ Ts[var, :3, 3][:, :, None])[:, :, 0] + dc[:, :3]
             P_try = P + dp
-            e2, _, _ = residuals(Ts_try, P_try)
-            cost2, _ = robust_cost(e2)
+            nxt = residuals(Ts_try, P_try)
+            cost2, _ = robust_cost(nxt[0])
             if cost2 < cost:
-                Ts, P = Ts_try, P_try
+                Ts, P, cur = Ts_try, P_try, nxt
                 lam = max(lam / 3.0, 1e-7)
                 improved = True
                 break
             lam *= 4.0
         if not improved:
             break
+        if tol > 0 and cost - cost2 <= tol * cost:
+            # converged (relative cost decrease below tol): on to the outlier round, or done
+            if it < half:
+                it = half
+                continue
+            break
+        it += 1
     return Ts, P
 
 
@@ -340,7 +354,8 @@ class Optimizer:
     @staticmethod
     def pose_optimization(frame, map_, rounds: int = 4, iters: int = 10) -> int:
         """Refine ``frame.T_cw`` from its matched map points; sets ``frame.outlier``; returns the
-        number of inliers."""
+        number of inliers. Rows of the Jacobian are kept as one contiguous (6, 3n) array (u, v
+        and u_R blocks) so each iteration writes rows, not strided columns, and H is one GEMM."""
         idx = np.nonzero(frame.mp_ids >= 0)[0]
         ids = frame.mp_ids[idx]
         good = ~map_.mp_bad[ids]
@@ -348,64 +363,72 @@ class Optimizer:
         frame.outlier[:] = False
         if len(idx) < 3:
             return 0
-        Pw = map_.mp_pos[ids]
+        n = len(idx)
+        PwT = np.ascontiguousarray(map_.mp_pos[ids].T, dtype=float)          # (3, n)
         stereo = frame.ur[idx] >= 0
-        obs = np.column_stack([frame.uv[idx], np.where(stereo, frame.ur[idx], 0.0)]).astype(float)
-        info = frame.inv_level_sigma2[frame.octave[idx]]
+        st = stereo.astype(float)
+        ou = frame.uv[idx, 0].astype(float)
+        ov = frame.uv[idx, 1].astype(float)
+        our = np.where(stereo, frame.ur[idx], 0.0).astype(float)
+        info = frame.inv_level_sigma2[frame.octave[idx]].astype(float)
         chi2_th = np.where(stereo, CHI2_STEREO, CHI2_MONO)
         delta = np.sqrt(chi2_th)
         T = frame.T_cw.copy()
-        inlier = np.ones(len(idx), dtype=bool)
+        inlier = np.ones(n, dtype=bool)
         fx, fy, cx, cy, bf = frame.fx, frame.fy, frame.cx, frame.cy, frame.bf
-        n = len(idx)
-        # Jacobian buffer reused by every iteration: (n, 3 residual rows, 6) with xi = [rho, phi]
-        # (Pc' = exp(xi) Pc); written in closed form, the mono rows' u_R entries stay zero
-        J = np.zeros((n, 3, 6))
+        # Jacobian rows (residual = obs - proj, xi = [rho, phi]) as one (6, 3n) array: columns
+        # [0, n) are the u rows, [n, 2n) the v rows, [2n, 3n) the u_R rows (zero for mono)
+        J = np.zeros((6, 3 * n))
+        Ju, Jv, Jr = J[:, :n], J[:, n:2 * n], J[:, 2 * n:]
+        e = np.empty(3 * n)
+        eu, ev, er = e[:n], e[n:2 * n], e[2 * n:]
+        w3 = np.empty(3 * n)
         has_stereo = bool(np.any(stereo))
-        st = stereo.astype(float)
-        w3 = np.empty((n, 3))
         eye6 = 1e-9 * np.eye(6)
+
+        def residuals(T):
+            Pc = T[:3, :3] @ PwT + T[:3, 3:4]
+            X, Y, Z = Pc
+            iz = 1.0 / np.where(np.abs(Z) < 1e-9, 1e-9, Z)
+            xz, yz = X * iz, Y * iz
+            u = fx * xz + cx
+            np.subtract(ou, u, out=eu)
+            np.subtract(ov, fy * yz + cy, out=ev)
+            np.multiply(our - (u - bf * iz), st, out=er)
+            return X, Y, Z, iz, xz, yz
+
         for rnd in range(rounds):
             for _ in range(iters):
-                R, t = T[:3, :3], T[:3, 3]
-                Pc = Pw @ R.T + t
-                X, Y, Z = Pc[:, 0], Pc[:, 1], Pc[:, 2]
-                iz = 1.0 / np.where(np.abs(Z) < 1e-9, 1e-9, Z)
-                xz, yz = X * iz, Y * iz
-                u = fx * xz + cx
-                e = np.empty((n, 3))
-                e[:, 0] = obs[:, 0] - u
-                e[:, 1] = obs[:, 1] - (fy * yz + cy)
-                e[:, 2] = (obs[:, 2] - (u - bf * iz)) * st
-                chi2 = info * np.einsum("ij,ij->i", e, e)
+                X, Y, Z, iz, xz, yz = residuals(T)
+                chi2 = info * (eu * eu + ev * ev + er * er)
                 w = info * inlier
                 if rnd < rounds - 1:   # Huber weights: sqrt(chi2) > delta -> delta / sqrt(chi2)
                     s = np.sqrt(np.maximum(chi2, 1e-12))
                     w = w * np.where(s > delta, delta / s, 1.0)
-                # J = -d(proj)/d(xi) (residual = obs - proj), rows u, v, u_R
                 fxz, fyz, xy = fx * iz, fy * iz, xz * yz
-                J[:, 0, 0] = -fxz
-                J[:, 0, 2] = fxz * xz
-                J[:, 0, 3] = fx * xy
-                J[:, 0, 4] = -fx * (1.0 + xz * xz)
-                J[:, 0, 5] = fx * yz
-                J[:, 1, 1] = -fyz
-                J[:, 1, 2] = fyz * yz
-                J[:, 1, 3] = fy * (1.0 + yz * yz)
-                J[:, 1, 4] = -fy * xy
-                J[:, 1, 5] = -fy * xz
+                np.negative(fxz, out=Ju[0])
+                np.multiply(fxz, xz, out=Ju[2])
+                np.multiply(fx, xy, out=Ju[3])
+                np.multiply(-fx, 1.0 + xz * xz, out=Ju[4])
+                np.multiply(fx, yz, out=Ju[5])
+                np.negative(fyz, out=Jv[1])
+                np.multiply(fyz, yz, out=Jv[2])
+                np.multiply(fy, 1.0 + yz * yz, out=Jv[3])
+                np.multiply(-fy, xy, out=Jv[4])
+                np.multiply(-fy, xz, out=Jv[5])
                 if has_stereo:   # u_R row = u row + d(-bf/Z)/d(xi); zero for mono (st = 0)
                     b2 = bf * iz * iz
-                    np.multiply(J[:, 0, 0], st, out=J[:, 2, 0])
-                    np.multiply(J[:, 0, 2] - b2, st, out=J[:, 2, 2])
-                    np.multiply(J[:, 0, 3] - b2 * Y, st, out=J[:, 2, 3])
-                    np.multiply(J[:, 0, 4] + b2 * X, st, out=J[:, 2, 4])
-                    np.multiply(J[:, 0, 5], st, out=J[:, 2, 5])
-                J2 = J.reshape(3 * n, 6)
-                w3[:] = w[:, None]
-                Jw = J2 * w3.reshape(-1, 1)
-                H = Jw.T @ J2
-                g = Jw.T @ e.reshape(-1)
+                    np.multiply(Ju[0], st, out=Jr[0])
+                    np.multiply(Ju[2] - b2, st, out=Jr[2])
+                    np.multiply(Ju[3] - b2 * Y, st, out=Jr[3])
+                    np.multiply(Ju[4] + b2 * X, st, out=Jr[4])
+                    np.multiply(Ju[5], st, out=Jr[5])
+                w3[:n] = w
+                w3[n:2 * n] = w
+                w3[2 * n:] = w
+                Jw = J * w3
+                H = Jw @ J.T
+                g = Jw @ e
                 try:
                     dx = -np.linalg.solve(H + eye6, g)
                 except np.linalg.LinAlgError:
@@ -413,9 +436,9 @@ class Optimizer:
                 T = _exp_se3_left(dx, T)
                 if np.linalg.norm(dx) < 1e-6:
                     break
-            e, Pc = project_residuals(T, Pw, obs, stereo, fx, fy, cx, cy, bf)
-            chi2 = info * np.einsum("ij,ij->i", e, e)
-            inlier = (chi2 <= chi2_th) & (Pc[:, 2] > 0)
+            X, Y, Z, iz, xz, yz = residuals(T)
+            chi2 = info * (eu * eu + ev * ev + er * er)
+            inlier = (chi2 <= chi2_th) & (Z > 0)
             if np.count_nonzero(inlier) < 10:
                 break
         frame.T_cw = normalize_pose(T)
@@ -425,12 +448,13 @@ class Optimizer:
     # ------------------------------------------------------------------ local bundle adjustment
     @staticmethod
     def local_bundle_adjustment(kf, map_, n_covisible: int = 10, iterations: int = 10,
-                                abort=None, worker: Optional["BAWorker"] = None
-                                ) -> Tuple[List[int], int]:
+                                abort=None, worker: Optional["BAWorker"] = None,
+                                tol: float = 0.0) -> Tuple[List[int], int]:
         """ORB-SLAM2 LocalBundleAdjustment: optimise ``kf`` and its covisible keyframes and every
         point they see; keyframes that see those points but are not local stay fixed. Observations
         with chi2 above threshold after optimization are erased. Returns (moved kf ids, outliers).
-        With a ``worker`` (BAWorker) the solver runs in its child process.
+        With a ``worker`` (BAWorker) the solver runs in its child process. ``tol``: see
+        :func:`bundle_adjust` (early end of a converged round).
         """
         with map_.lock:
             local = [kf] + map_.best_covisibles(kf, n_covisible)
@@ -441,9 +465,11 @@ class Optimizer:
                 return [], 0
             mark = np.zeros(map_.n, dtype=bool)
             mark[pts] = True
-            fixed = [k for k in map_.good_keyframes() if k.id not in local_ids and
-                     np.any(mark[k.mp_ids[k.mp_ids >= 0]])]
-            fixed = fixed[:20]   # enough anchors; ORB-SLAM2 keeps all, but cost grows
+            # the first 20 (oldest) keyframes seeing local points: enough anchors (ORB-SLAM2
+            # keeps all, but cost grows); the scan stops at 20 instead of visiting every keyframe
+            fixed = list(itertools.islice(
+                (k for k in map_.good_keyframes() if k.id not in local_ids and
+                 np.any(mark[k.mp_ids[k.mp_ids >= 0]])), 20))
             if min(k.id for k in local) == 0 or not fixed:
                 first = min(local, key=lambda k: k.id)
                 fixed_ids = {first.id}
@@ -473,9 +499,9 @@ class Optimizer:
         ba_args = (Ts, fixed_mask, pos, cam_idx, pt_idx, obs, stereo, info,
                    (K0.fx, K0.fy, K0.cx, K0.cy, K0.bf), iterations)
         if worker is not None:
-            Ts_new, pos_new = worker.run(ba_args, {}, abort=abort)
+            Ts_new, pos_new = worker.run(ba_args, {"tol": tol}, abort=abort)
         else:
-            Ts_new, pos_new = bundle_adjust(*ba_args, abort=abort)
+            Ts_new, pos_new = bundle_adjust(*ba_args, abort=abort, tol=tol)
         new_pos = pos_new
         new_T = {k.id: inv_T(Ts_new[c]) for c, k in enumerate(kfs)
                  if not fixed_mask[c] and k in local}
@@ -486,17 +512,24 @@ class Optimizer:
                     k.set_pose(normalize_pose(inv_T(new_T[k.id])))
             alive = ~map_.mp_bad[pts]
             map_.mp_pos[pts[alive]] = new_pos[alive]
-            # erase observations that are outliers after the optimization (chi2 test)
-            for k, sel, mids in obs_list:
-                if k.bad or len(sel) == 0:
+            # erase observations that are outliers after the optimization (chi2 test), all
+            # observations at once with the keyframes' poses now; per keyframe only the erasing
+            Tc = np.array([k.T_cw for k in kfs])[cam_idx]
+            mids_all = np.concatenate([m for _, _, m in obs_list])
+            Pc = np.einsum("nij,nj->ni", Tc[:, :3, :3], map_.mp_pos[mids_all]) + Tc[:, :3, 3]
+            z = Pc[:, 2]
+            iz = 1.0 / np.where(np.abs(z) < 1e-9, 1e-9, z)
+            u = K0.fx * Pc[:, 0] * iz + K0.cx
+            e = np.stack([obs[:, 0] - u, obs[:, 1] - (K0.fy * Pc[:, 1] * iz + K0.cy),
+                          np.where(stereo, obs[:, 2] - (u - K0.bf * iz), 0.0)], axis=1)
+            chi2 = info * np.einsum("ij,ij->i", e, e)
+            bad_all = (chi2 > np.where(stereo, CHI2_STEREO, CHI2_MONO)) | (z <= 0)
+            ends = np.cumsum([len(sel) for _, sel, _ in obs_list])
+            for (k, sel, mids), end in zip(obs_list, ends):
+                bad = bad_all[end - len(sel):end]
+                if k.bad or not np.any(bad):
                     continue
-                stereo = k.ur[sel] >= 0
-                obs = np.column_stack([k.uv[sel], np.where(stereo, k.ur[sel], 0.0)])
-                e, Pc = project_residuals(k.T_cw, map_.mp_pos[mids], obs, stereo, k.fx, k.fy,
-                                          k.cx, k.cy, k.bf)
-                chi2 = k.inv_level_sigma2[k.octave[sel]] * np.einsum("ij,ij->i", e, e)
-                bad = (chi2 > np.where(stereo, CHI2_STEREO, CHI2_MONO)) | (Pc[:, 2] <= 0)
-                bad &= k.mp_ids[sel] == mids
+                bad = bad & (k.mp_ids[sel] == mids)   # still the same point at that keypoint
                 if np.any(bad):
                     n_out += int(np.count_nonzero(bad))
                     map_.erase_observations(k, sel[bad])
@@ -507,8 +540,9 @@ class Optimizer:
     @staticmethod
     def optimize_essential_graph(poses_wc: Dict[int, np.ndarray], edges: List[Tuple[int, int, np.ndarray]],
                                  fixed: int, iterations: int = 20) -> Dict[int, np.ndarray]:
-        """SE(3) pose graph: ``edges`` (i, j, T_i_j measured) as BetweenFactorPose3 over keyframe
-        poses T_w_c (stereo: scale is observable, so SE(3) instead of ORB-SLAM's Sim(3)).
+        """SE(3) pose graph: ``edges`` (i, j, T_i_j measured[, information scale]) as
+        BetweenFactorPose3 over keyframe poses T_w_c (stereo: scale is observable, so SE(3)
+        instead of ORB-SLAM's Sim(3)). Without a scale every edge has the same sigmas.
         Returns optimised {kf_id: T_w_c}."""
         import gtsam
         from gtsam.symbol_shorthand import X
@@ -517,10 +551,246 @@ class Optimizer:
         for k, T in poses_wc.items():
             values.insert(X(k), gtsam.Pose3(T))
         graph.add(gtsam.NonlinearEqualityPose3(X(fixed), gtsam.Pose3(poses_wc[fixed])))
-        noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([0.01, 0.01, 0.01, 0.02, 0.02, 0.02]))
-        for i, j, Tij in edges:
-            graph.add(gtsam.BetweenFactorPose3(X(i), X(j), gtsam.Pose3(Tij), noise))
+        sig = np.array([0.01, 0.01, 0.01, 0.02, 0.02, 0.02])
+        noise = gtsam.noiseModel.Diagonal.Sigmas(sig)
+        models = {}
+        for e in edges:
+            i, j, Tij = e[:3]
+            model = noise
+            if len(e) > 3 and e[3] is not None:   # information scale (e.g. shared points / 100)
+                w = float(np.clip(e[3], 0.05, 100.0))
+                key = round(w, 3)
+                if key not in models:
+                    models[key] = gtsam.noiseModel.Diagonal.Sigmas(sig / np.sqrt(key))
+                model = models[key]
+            graph.add(gtsam.BetweenFactorPose3(X(i), X(j), gtsam.Pose3(Tij), model))
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(iterations)
         result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
         return {k: result.atPose3(X(k)).matrix() for k in poses_wc}
+
+
+# ---------------------------------------------------------------------- global bundle adjustment
+def bundle_adjust_sparse(Ts: np.ndarray, fixed: np.ndarray, P: np.ndarray, cam_idx: np.ndarray,
+                         pt_idx: np.ndarray, obs: np.ndarray, stereo: np.ndarray,
+                         info: np.ndarray, intr, iterations: int = 10, lm_lambda: float = 1e-3,
+                         abort=None):
+    """:func:`bundle_adjust` for many cameras (global BA): the same robust LM with the Schur
+    complement and the same outlier rounds, but the (6 C x 3 M) camera-point block matrix W is a
+    scipy.sparse matrix, so memory grows with the observations instead of cameras x points (the
+    dense W of the local solver would be gigabytes for a whole map). Returns (Ts, P, inlier mask
+    of the observations after the last outlier round)."""
+    import scipy.sparse as sp
+    fx, fy, cx, cy, bf = intr
+    Ts = np.array(Ts, dtype=float)
+    P = np.array(P, dtype=float)
+    C, M = len(Ts), len(P)
+    var = np.nonzero(~np.asarray(fixed, dtype=bool))[0]
+    cvar = np.full(C, -1, dtype=np.int64)
+    cvar[var] = np.arange(len(var))
+    nv = len(var)
+    chi2_th = np.where(stereo, CHI2_STEREO, CHI2_MONO)
+    delta = np.sqrt(chi2_th)
+    active = np.ones(len(obs), dtype=bool)
+
+    def residuals(Ts_, P_):
+        R = Ts_[cam_idx, :3, :3]
+        Pc = np.einsum("nij,nj->ni", R, P_[pt_idx]) + Ts_[cam_idx, :3, 3]
+        z = Pc[:, 2]
+        iz = 1.0 / np.where(np.abs(z) < 1e-9, 1e-9, z)
+        u = fx * Pc[:, 0] * iz + cx
+        v = fy * Pc[:, 1] * iz + cy
+        e = np.stack([obs[:, 0] - u, obs[:, 1] - v,
+                      np.where(stereo, obs[:, 2] - (u - bf * iz), 0.0)], axis=1)
+        return e, Pc, R
+
+    def robust_cost(e):
+        chi2 = info * np.einsum("ij,ij->i", e, e)
+        s = np.sqrt(chi2)
+        rho = np.where(s <= delta, chi2, 2.0 * delta * s - delta * delta)
+        return float(np.sum(rho[active])), chi2
+
+    ovi = np.nonzero(cvar[cam_idx] >= 0)[0]
+    oc = cvar[cam_idx[ovi]]
+    pt_ov = pt_idx[ovi]
+    # COO pattern of the (6 x 3) blocks of W, row-major inside each block
+    rows = (6 * oc[:, None, None] + np.arange(6)[None, :, None]) + np.zeros((1, 1, 3), np.int64)
+    cols = (3 * pt_ov[:, None, None] + np.arange(3)[None, None, :]) + np.zeros((1, 6, 1), np.int64)
+    rows, cols = rows.ravel(), cols.ravel()
+    lam = lm_lambda
+    half = max(1, iterations // 2)
+    for it in range(iterations):
+        if abort is not None and it > 0 and abort():
+            break
+        if it == half:
+            e, Pc, _ = residuals(Ts, P)
+            _, chi2 = robust_cost(e)
+            active &= (chi2 <= chi2_th) & (Pc[:, 2] > 0)
+        e, Pc, R = residuals(Ts, P)
+        cost, chi2 = robust_cost(e)
+        s = np.sqrt(np.maximum(chi2, 1e-12))
+        w = info * np.where(s > delta, delta / s, 1.0) * active
+        Jc, Jl = _pose_point_jacobians(Pc, R, stereo, fx, fy, bf)
+        JlT = Jl.transpose(0, 2, 1) * w[:, None, None]
+        Hpp = _block_sum(pt_idx, JlT @ Jl, M)
+        bp = _block_sum(pt_idx, (JlT @ e[:, :, None])[:, :, 0], M)
+        JcT = Jc[ovi].transpose(0, 2, 1) * w[ovi][:, None, None]
+        Hcc = _block_sum(oc, JcT @ Jc[ovi], nv)
+        bc = _block_sum(oc, (JcT @ e[ovi][:, :, None])[:, :, 0], nv)
+        Wb = JcT @ Jl[ovi]
+        W = sp.csr_matrix((Wb.ravel(), (rows, cols)), shape=(6 * nv, 3 * M)) if nv else None
+        improved = False
+        for _ in range(6):
+            Hpp_d = Hpp + (lam * np.einsum("nii->ni", Hpp) + 1e-9)[:, :, None] * np.eye(3)
+            Vinv = _inv3(Hpp_d)
+            if nv:
+                Hcc_d = Hcc + (lam * np.einsum("nii->ni", Hcc) + 1e-9)[:, :, None] * np.eye(6)
+                WV = sp.csr_matrix(((Wb @ Vinv[pt_ov]).ravel(), (rows, cols)),
+                                   shape=(6 * nv, 3 * M))
+                S = -(WV @ W.T).toarray()
+                idx = 6 * np.arange(nv)[:, None] + np.arange(6)[None, :]
+                S[idx[:, :, None], idx[:, None, :]] += Hcc_d
+                rhs = -bc.ravel() + WV @ bp.ravel()
+                try:
+                    dc = np.linalg.solve(S, rhs).reshape(nv, 6)
+                except np.linalg.LinAlgError:
+                    lam *= 10
+                    continue
+                dp = -(Vinv @ (bp + (W.T @ dc.ravel()).reshape(M, 3))[:, :, None])[:, :, 0]
+            else:
+                dc = np.zeros((0, 6))
+                dp = -(Vinv @ bp[:, :, None])[:, :, 0]
+            Ts_try = Ts.copy()
+            if nv:
+                Rd = Rotation.from_rotvec(dc[:, 3:]).as_matrix()
+                Ts_try[var, :3, :3] = Rd @ Ts[var, :3, :3]
+                Ts_try[var, :3, 3] = np.einsum("nij,nj->ni", Rd, Ts[var, :3, 3]) + dc[:, :3]
+            P_try = P + dp
+            e2, _, _ = residuals(Ts_try, P_try)
+            cost2, _ = robust_cost(e2)
+            if cost2 < cost:
+                Ts, P = Ts_try, P_try
+                lam = max(lam / 3.0, 1e-7)
+                improved = True
+                break
+            lam *= 4.0
+        if not improved:
+            break
+    e, Pc, _ = residuals(Ts, P)
+    _, chi2 = robust_cost(e)
+    inlier = active & (chi2 <= chi2_th) & (Pc[:, 2] > 0)
+    return Ts, P, inlier
+
+
+def global_bundle_adjustment(map_, iterations: int = 10, fixed_id: Optional[int] = None,
+                             abort=None, lock_solve: bool = True,
+                             min_observers: int = 2) -> Dict[str, object]:
+    """ORB-SLAM2 RunGlobalBundleAdjustment: every live keyframe and map point optimised together
+    (the first keyframe, or ``fixed_id``, held), then the result written back. Keyframes and
+    points created while the solver ran (``lock_solve=False``: the map lock is released during
+    the solve, so tracking goes on) follow their spanning-tree ancestor / reference keyframe, as
+    ORB-SLAM2 propagates the GBA correction. Observations that are outliers after the solve are
+    erased. Returns {"moved": kf ids, "outliers": n, "keyframes": n, "points": n}."""
+    with map_.lock:
+        kfs = sorted(map_.good_keyframes(), key=lambda k: k.id)
+        if len(kfs) < 2:
+            return {"moved": [], "outliers": 0, "keyframes": len(kfs), "points": 0}
+        fid = kfs[0].id if fixed_id is None or fixed_id not in map_.keyframes else fixed_id
+        n_pts = map_.n
+        obs_list = []
+        for c, k in enumerate(kfs):
+            sel = np.nonzero(k.mp_ids >= 0)[0]
+            ids = k.mp_ids[sel]
+            good = ~map_.mp_bad[ids]
+            obs_list.append((k, sel[good], ids[good]))
+        all_ids = np.concatenate([m for _, _, m in obs_list])
+        # points seen by at least min_observers keyframes constrain poses; the rest follow
+        cnt = np.bincount(all_ids, minlength=n_pts)
+        pts = np.nonzero(cnt >= max(2, int(min_observers)))[0]
+        lookup = np.full(n_pts, -1, dtype=np.int64)
+        lookup[pts] = np.arange(len(pts))
+        cam_l, pt_l, uv_l, ur_l, inf_l, kp_l = [], [], [], [], [], []
+        for c, (k, sel, ids) in enumerate(obs_list):
+            m = lookup[ids] >= 0
+            sel, ids = sel[m], ids[m]
+            cam_l.append(np.full(len(sel), c))
+            pt_l.append(lookup[ids])
+            uv_l.append(k.uv[sel])
+            ur_l.append(k.ur[sel])
+            inf_l.append(k.inv_level_sigma2[k.octave[sel]])
+            kp_l.append(sel)
+        Ts = np.array([k.T_cw for k in kfs])
+        T_used = {k.id: k.T_cw.copy() for k in kfs}
+        P0 = map_.mp_pos[pts].copy()
+        K0 = kfs[0]
+        intr = (K0.fx, K0.fy, K0.cx, K0.cy, K0.bf)
+    if len(pts) == 0:
+        return {"moved": [], "outliers": 0, "keyframes": len(kfs), "points": 0}
+    cam_idx = np.concatenate(cam_l)
+    pt_idx = np.concatenate(pt_l)
+    uv = np.concatenate(uv_l).astype(float)
+    urr = np.concatenate(ur_l).astype(float)
+    stereo = urr >= 0
+    obs = np.column_stack([uv, np.where(stereo, urr, 0.0)])
+    info = np.concatenate(inf_l).astype(float)
+    fixed = np.array([k.id == fid for k in kfs])
+
+    def solve():
+        return bundle_adjust_sparse(Ts, fixed, P0, cam_idx, pt_idx, obs, stereo, info, intr,
+                                    iterations=iterations, abort=abort)
+    if lock_solve:
+        with map_.lock:
+            Ts_new, P_new, inlier = solve()
+    else:
+        Ts_new, P_new, inlier = solve()
+    n_out = 0
+    with map_.lock:
+        new_cw = {k.id: normalize_pose(Ts_new[c]) for c, k in enumerate(kfs)}
+        # correction of each optimised keyframe, in world: C = T_wc_new T_cw_used
+        # keyframes added meanwhile follow their nearest optimised ancestor
+        moved = []
+        for k in map_.good_keyframes():
+            if k.id in new_cw:
+                continue
+            a = k.parent
+            while a is not None and a.id not in new_cw:
+                a = a.parent
+            if a is None:
+                continue
+            C = inv_T(new_cw[a.id]) @ T_used[a.id]
+            k.set_pose(k.T_cw @ inv_T(C))
+            moved.append(k.id)
+        # points: optimised ones take the solution; the others follow their reference keyframe
+        alive = ~map_.mp_bad[pts]
+        map_.mp_pos[pts[alive]] = P_new[alive]
+        rest = np.nonzero(~map_.mp_bad[: map_.n])[0]
+        rest = rest[~np.isin(rest, pts)]
+        if len(rest):
+            ref = map_.mp_ref_kf[rest]
+            for kid in np.unique(ref).tolist():
+                if kid not in new_cw:
+                    continue
+                sel = rest[ref == kid]
+                C = inv_T(new_cw[kid]) @ T_used[kid]
+                map_.mp_pos[sel] = map_.mp_pos[sel] @ C[:3, :3].T + C[:3, 3]
+        for c, k in enumerate(kfs):
+            if not k.bad:
+                k.set_pose(new_cw[k.id])
+                moved.append(k.id)
+        # erase the observations the solver rejected (still the same point at that keypoint)
+        cam_o = cam_idx[~inlier]
+        kp_o = np.concatenate(kp_l)[~inlier]
+        pid_o = pts[pt_idx[~inlier]]
+        for c in np.unique(cam_o).tolist():
+            k = kfs[c]
+            if k.bad:
+                continue
+            m = cam_o == c
+            kp, pid = kp_o[m], pid_o[m]
+            same = k.mp_ids[kp] == pid
+            if np.any(same):
+                n_out += int(np.count_nonzero(same))
+                map_.erase_observations(k, kp[same])
+        live = np.nonzero(~map_.mp_bad[: map_.n])[0]
+        map_.update_normal_and_depth(live)
+    return {"moved": sorted(moved), "outliers": n_out, "keyframes": len(kfs), "points": len(pts)}

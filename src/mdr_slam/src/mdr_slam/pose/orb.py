@@ -12,7 +12,8 @@ from typing import Tuple
 
 import numpy as np
 
-__all__ = ["ORBextractor", "hamming", "hamming_matrix", "expand_ranges", "TH_HIGH", "TH_LOW"]
+__all__ = ["ORBextractor", "hamming", "hamming_matrix", "hamming_knn2", "expand_ranges", "TH_HIGH",
+           "TH_LOW"]
 
 TH_HIGH = 100   # ORBmatcher::TH_HIGH: largest Hamming distance accepted for projection search
 TH_LOW = 50     # ORBmatcher::TH_LOW: stricter bound for descriptor-only (BoW-like) matching
@@ -62,6 +63,24 @@ def hamming_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     ub = np.unpackbits(b, axis=1).astype(np.float32)
     D = ua.sum(1)[:, None] + ub.sum(1)[None, :] - 2.0 * (ua @ ub.T)
     return np.rint(D).astype(np.int32)
+
+
+def hamming_knn2(a: np.ndarray, b: np.ndarray):
+    """Per row of ``a``: the two smallest Hamming distances to rows of ``b`` and their indices,
+    ((N, 2) int32, (N, 2) int), ties to the lower index (as np.argmin). cv2.batchDistance with K=2
+    counts bits in C++ (4x faster than hamming_matrix's unpacked-bit BLAS product at 700x1500).
+    With one row in ``b`` the second distance is 256 and its index -1."""
+    n = len(a)
+    if n == 0 or len(b) == 0:
+        return np.full((n, 2), 256, np.int32), -np.ones((n, 2), np.int64)
+    import cv2
+    d, i = cv2.batchDistance(np.ascontiguousarray(a), np.ascontiguousarray(b), cv2.CV_32S,
+                             normType=cv2.NORM_HAMMING, K=2)
+    d, i = d.reshape(n, -1), i.reshape(n, -1).astype(np.int64)
+    if d.shape[1] < 2:
+        d = np.column_stack([d[:, 0], np.full(n, 256, np.int32)])
+        i = np.column_stack([i[:, 0], -np.ones(n, np.int64)])
+    return d.astype(np.int32), i
 
 
 def expand_ranges(lo: np.ndarray, hi: np.ndarray):

@@ -45,10 +45,19 @@ DEFAULT_PARAMS = {
     "ba_iterations": 8,
     "ba_process": False,         # threads: local BA in a child process (helps with spare cores)
     "triangulation_neighbours": 10,
+    "triangulation_bow_depth": 0,  # > 0: vocabulary-node prefilter of triangulation pairs (0: all)
+    "ba_tol": 1e-3,              # a local BA round ends once a step lowers the cost < tol (0: off)
     "loop_closing": True,
     "vocabulary": "",            # npz path; empty = the packaged/built-in vocabulary
     "loop_consistency": 2,       # consecutive keyframes a loop candidate must recur (ORB-SLAM2: 3)
+    "global_ba": True,           # global bundle adjustment after each loop correction
+    "global_ba_iterations": 20,
+    "pose_graph_weights": True,  # loop pose graph: edge information from shared points
+    "loop_min_age": 3.0,         # s; younger keyframes are never loop candidates
+    "loop_max_drift": 0.3,       # a loop may move the keyframe <= this x the path since the match
+    "loop_max_rotation_deg": 45.0,  # ... and turn it at most this much (false-loop gate)
     "reloc_candidates": 10,
+    "reloc_max_ms": 60.0,        # LOST: no further candidate starts after this (wall ms per frame)
     "backpressure_inliers": 80,  # threads: wait for LocalMapping when tracking gets this weak
     "min_inliers": 30,           # local-map inliers for OK (ORB-SLAM2: 30)
     "low_texture_points": 150,   # frames with fewer stereo keypoints are low-texture ...
@@ -63,7 +72,8 @@ _REASONS = {"local_ba": 1, "loop_closure": 2}
 # the runner can pass the whole file)
 NODE_KEYS = {"source", "map_frame", "odom_frame", "base_frame", "camera_frame", "base_to_camera",
              "publish_tf", "publish_odom_tf", "path_max_length", "calib", "trajectory_path",
-             "trajectory_format", "sync_queue_size", "sync_slop", "threads"}
+             "trajectory_format", "sync_queue_size", "sync_slop", "threads", "path_period",
+             "max_pending", "blas_threads", "diagnostics_period"}
 
 
 @dataclass
@@ -81,6 +91,8 @@ class TrackResult:
     n_keyframes: int = 0
     n_loop_closures: int = 0
     track_ms: float = 0.0                      # tracking alone (time_ms adds sync-mode mapping)
+    track_cpu_ms: float = 0.0                  # CPU of the calling thread for tracking alone
+    lock_wait_ms: float = 0.0                  # waiting for the map lock (mapping threads)
 
 
 class System:
@@ -139,6 +151,7 @@ class System:
     # ------------------------------------------------------------------ API
     def track(self, stamp: float, left_rect: np.ndarray, right_rect: np.ndarray) -> TrackResult:
         t0 = time.perf_counter()
+        c0 = time.thread_time()
         if self.request_reset:
             self.reset()
         if left_rect.ndim == 3:
@@ -153,6 +166,7 @@ class System:
         tracked_ok = state in (OK, RELOCALIZED) and frame.T_cw is not None and \
             self.tracking.records[-1][1] is not None
         t_track = 1000.0 * (time.perf_counter() - t0)
+        c_track = 1000.0 * (time.thread_time() - c0)
         if self.threads and tracked_ok and self.local_mapping.queue_size() >= 2 and \
                 self.tracking.n_matches_inliers < self.p["backpressure_inliers"]:
             # back-pressure: weak tracking while LocalMapping lags (the GIL and a loaded CPU
@@ -181,7 +195,8 @@ class System:
             ref_keyframe_id=self.tracking.ref_kf.id if self.tracking.ref_kf is not None else -1,
             n_map_points=self.tracking.n_local_points,
             n_keyframes=len(self.map.good_keyframes()),
-            n_loop_closures=self.map.n_loop_closures, track_ms=t_track)
+            n_loop_closures=self.map.n_loop_closures, track_ms=t_track, track_cpu_ms=c_track,
+            lock_wait_ms=self.tracking.lock_wait_ms)
 
     def _collect_corrections(self):
         pending = []

@@ -42,6 +42,9 @@ class Tracking:
         self.matcher = ORBmatcher(check_orientation=True)
         self.state = NOT_INITIALIZED
         self.velocity: Optional[np.ndarray] = None
+        self.velocity_dt = 0.0            # stamp difference the velocity was measured over (s)
+        self.reloc_tried: set = set()     # candidate keyframes tried since the last success
+        self.n_reloc_tried = 0            # candidates tried by the last relocalization call
         self.last_frame: Optional[Frame] = None
         self.ref_kf = None
         self.last_kf_frame_id = -10 ** 9
@@ -50,14 +53,19 @@ class Tracking:
         self.local_kf_ids: set = set()
         self.n_matches_inliers = 0
         self.n_local_points = 0
+        self.lock_wait_ms = 0.0
         # per-frame record for the trajectory: (stamp, ref kf, T_c_ref, lost)
         self.records: List[tuple] = []
 
     # ------------------------------------------------------------------ entry
     def track(self, frame: Frame) -> dict:
+        import time
         mp = self.map
         out = {"is_keyframe": False, "keyframe_id": -1}
+        t0 = time.perf_counter()
         with mp.lock:
+            # time spent waiting for LocalMapping/LoopClosing to release the map (GIL included)
+            self.lock_wait_ms = 1000.0 * (time.perf_counter() - t0)
             if self.state == NOT_INITIALIZED:
                 if self.stereo_initialization(frame):
                     self.state = OK
@@ -90,6 +98,7 @@ class Tracking:
                 self.state = RELOCALIZED if relocalized else OK
                 if self.last_frame is not None and self.last_frame.T_cw is not None:
                     self.velocity = normalize_pose(frame.T_cw @ inv_T(self.last_frame.T_cw))
+                    self.velocity_dt = frame.stamp - self.last_frame.stamp
                 # drop outliers before the keyframe decision (ORB-SLAM2 end of Track)
                 frame.mp_ids[frame.outlier] = -1
                 frame.outlier[:] = False
@@ -152,6 +161,24 @@ class Tracking:
                 kf = kf.parent
             last.set_pose(T_c_ref @ kf.T_cw)
 
+    def predicted_velocity(self, frame: Frame) -> np.ndarray:
+        """The constant-velocity motion from the last frame to ``frame``: the last measured
+        velocity scaled to the real stamp difference (frames dropped while the node was busy, or
+        an irregular stream); unchanged when the gap is within 5 % of the measured one."""
+        V = self.velocity
+        dt = frame.stamp - self.last_frame.stamp
+        if self.velocity_dt <= 0 or not dt > 0:
+            return V
+        r = dt / self.velocity_dt
+        if abs(r - 1.0) <= 0.05:
+            return V
+        from scipy.spatial.transform import Rotation
+        r = min(r, 10.0)   # a long gap: extrapolating further only misleads the search
+        out = np.eye(4)
+        out[:3, :3] = Rotation.from_rotvec(r * Rotation.from_matrix(V[:3, :3]).as_rotvec()).as_matrix()
+        out[:3, 3] = r * V[:3, 3]
+        return out
+
     def low_texture(self, frame: Frame) -> bool:
         """Few stereo keypoints (blank walls): thresholds written for 1000+ features relax."""
         if getattr(frame, "n_primary", self.p["n_features"]) < self.p["n_features"]:
@@ -160,7 +187,7 @@ class Tracking:
 
     def track_with_motion_model(self, frame: Frame) -> bool:
         self._update_last_frame()
-        frame.set_pose(self.velocity @ self.last_frame.T_cw)
+        frame.set_pose(self.predicted_velocity(frame) @ self.last_frame.T_cw)
         frame.mp_ids[:] = -1
         min_n = 10 if self.low_texture(frame) else 20
         n = self.matcher.search_by_projection_last(frame, self.last_frame, self.map, th=7.0)
@@ -177,7 +204,7 @@ class Tracking:
         motion-model pose and a wide window (sudden turns, few features: the last frame alone
         holds too few points)."""
         self._update_last_frame()
-        frame.set_pose(self.velocity @ self.last_frame.T_cw)
+        frame.set_pose(self.predicted_velocity(frame) @ self.last_frame.T_cw)
         frame.mp_ids[:] = -1
         frame.outlier[:] = False
         pts = [k.valid_mp_ids(self.map.mp_bad) for k in [self.ref_kf] + self.local_kfs
@@ -197,7 +224,7 @@ class Tracking:
         then the local map projected with that pose. Needs no motion prior, so it carries sudden
         turns (pure rotation starts) and low-texture views where few keypoints are map points."""
         import cv2
-        from .orb import TH_LOW, hamming_matrix
+        from .orb import TH_LOW, hamming_knn2
         last = self.last_frame
         if last is None or last.T_cw is None:
             return False
@@ -205,11 +232,8 @@ class Tracking:
         st = np.nonzero(last.depth > 0)[0]
         if len(st) < 10 or frame.N < 10:
             return False
-        D = hamming_matrix(last.desc[st], frame.desc)
-        b = np.argmin(D, axis=1)
-        d1 = D[np.arange(len(st)), b]
-        D[np.arange(len(st)), b] = 256
-        d2 = D.min(axis=1)
+        d12, b12 = hamming_knn2(last.desc[st], frame.desc)
+        b, d1, d2 = b12[:, 0], d12[:, 0], d12[:, 1]
         ok = (d1 <= TH_LOW) & (d1 < 0.8 * d2)
         ia, jb = np.nonzero(ok)[0], b[ok]
         from .matcher import _unique_by, rotation_consistency
@@ -262,10 +286,24 @@ class Tracking:
         """Candidate keyframes (BoW database when a vocabulary is loaded, else the most recent),
         descriptor matches, PnP RANSAC (cv2.solvePnPRansac), pose-only optimization, and a guided
         projection search of the candidate's covisible points (ORB-SLAM2 Relocalization)."""
+        import time
         import cv2
+        t0 = time.perf_counter()
+        budget = float(self.p["reloc_max_ms"]) / 1000.0
         cands = self.system.relocalization_candidates(frame)
+        # bounded per frame: candidates not tried by the last LOST frames go first, and after
+        # the first candidate no new one starts once reloc_max_ms (wall) is spent; the next
+        # LOST frame goes on with the rest
+        if cands and all(k.id in self.reloc_tried for k in cands):
+            self.reloc_tried.clear()
+        cands = sorted(cands, key=lambda k: k.id in self.reloc_tried)
         K = np.array([[frame.fx, 0, frame.cx], [0, frame.fy, frame.cy], [0, 0, 1.0]])
+        self.n_reloc_tried = 0
         for kf in cands:
+            if self.n_reloc_tried and time.perf_counter() - t0 > budget:
+                break
+            self.n_reloc_tried += 1
+            self.reloc_tried.add(kf.id)
             frame.mp_ids[:] = -1
             kp, ids = self.matcher.search_by_descriptors(kf, frame, self.map, ratio=0.75)
             if len(kp) < 15:
@@ -296,6 +334,7 @@ class Tracking:
             if n >= 50:
                 self.last_reloc_frame_id = frame.id
                 self.ref_kf = kf
+                self.reloc_tried.clear()
                 return True
         frame.mp_ids[:] = -1
         return False
