@@ -115,3 +115,31 @@ def test_core_imports_without_ros():
             "print(bad); sys.exit(1 if bad else 0)\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_openblas_coretype_follows_the_cpu_flags(tmp_path, monkeypatch):
+    """mdr_slam picks OpenBLAS's kernel family from /proc/cpuinfo flags (numpy's OpenBLAS falls
+    back to AVX-less 'Prescott' kernels on CPUs newer than it), never overriding the user's."""
+    import mdr_slam
+    monkeypatch.delenv("OPENBLAS_CORETYPE", raising=False)
+    monkeypatch.delenv("MDR_OPENBLAS_CORETYPE", raising=False)
+    cases = {"fpu sse2 avx avx2 fma avx512f avx512dq avx512bw avx512vl": "SkylakeX",
+             "fpu sse2 avx avx2 fma": "Haswell", "fpu sse2 sse4_2": None}
+    for flags, want in cases.items():
+        f = tmp_path / "cpuinfo"
+        f.write_text("processor\t: 0\nflags\t\t: %s\n" % flags)
+        assert mdr_slam._openblas_coretype(str(f)) == want, flags
+    assert mdr_slam._openblas_coretype(str(tmp_path / "missing")) is None
+    monkeypatch.setenv("OPENBLAS_CORETYPE", "Haswell")
+    assert mdr_slam._openblas_coretype(str(f)) is None
+    # in a fresh interpreter that imports mdr_slam before numpy, OpenBLAS loads the chosen kernels
+    code = ("import os, mdr_slam, numpy\n"
+            "from threadpoolctl import threadpool_info\n"
+            "arch = [i.get('architecture') for i in threadpool_info() if i['internal_api'] == 'openblas']\n"
+            "print(os.environ.get('OPENBLAS_CORETYPE'), arch)\n")
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_CORETYPE"}
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    assert r.returncode == 0, r.stderr
+    chosen, arch = r.stdout.split(" ", 1)
+    if chosen != "None" and "[]" not in arch:
+        assert chosen in arch, r.stdout
