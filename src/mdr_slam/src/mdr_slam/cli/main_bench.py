@@ -56,6 +56,8 @@ def add_parser(sub, name, help_text):
     p.add_argument("--jobs", type=int, default=2, help="runs in parallel (one per core)")
     p.add_argument("--max-frames", type=int, default=None)
     p.add_argument("--threshold", type=float, default=0.05, help="completeness threshold (m)")
+    p.add_argument("--launch-arg", action="append", default=[], metavar="NAME:=VALUE",
+                   help="live: extra mdr.launch argument (repeatable), e.g. depth_prefix:=")
     p.add_argument("--set", action="append", default=[], metavar="NODE.KEY=VALUE",
                    help="parameter override passed to every mdr run, or to the live nodes")
     p.set_defaults(func=run)
