@@ -6,6 +6,8 @@
 """
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 
 from .common import ClockWatch, StampGuard, Throttled, get_params, parse_transform
@@ -52,10 +54,10 @@ class PoseRelay:
         self.path.header.frame_id = p["map_frame"]
         self._path_sent = -1e9             # monotonic time of the last /mdr/path
         self._path_dirty = False
-        self._path_lock = __import__("threading").Lock()   # the timer thread publishes it too
+        self._path_lock = threading.Lock()   # the timer thread publishes it too
         if float(p.get("path_period", 0)) > 0:   # the last poses of a burst go out too
             self._path_timer = rospy.Timer(rospy.Duration(float(p["path_period"])),
-                                           lambda _e: self._flush_path())
+                                           lambda _e: self._flush_path(), reset=True)
         self.guard = StampGuard()
         self.clock = ClockWatch()          # ROS time jumping back (bag loop): a new timeline
         self.warn = Throttled()
