@@ -81,6 +81,29 @@ def _pose_point_jacobians(Pc, R, stereo, fx, fy, bf):
     return Jc, Jl
 
 
+def _ba_residuals(Ts, P, cam_idx, pt_idx, obs, stereo, intr):
+    """Stereo/mono reprojection residuals (n, 3) of BA observations, the points in the camera
+    frames (n, 3) and the rotations (n, 3, 3): the third row is the right-image u (0 for mono)."""
+    fx, fy, cx, cy, bf = intr
+    R = Ts[cam_idx, :3, :3]
+    Pc = (R @ P[pt_idx][:, :, None])[:, :, 0] + Ts[cam_idx, :3, 3]
+    z = Pc[:, 2]
+    iz = 1.0 / np.where(np.abs(z) < 1e-9, 1e-9, z)
+    u = fx * Pc[:, 0] * iz + cx
+    v = fy * Pc[:, 1] * iz + cy
+    e = np.stack([obs[:, 0] - u, obs[:, 1] - v,
+                  np.where(stereo, obs[:, 2] - (u - bf * iz), 0.0)], axis=1)
+    return e, Pc, R
+
+
+def _huber_cost(e, info, delta, active):
+    """(sum of Huber-robustified chi2 over the active observations, chi2 per observation)."""
+    chi2 = info * np.einsum("ij,ij->i", e, e)
+    s = np.sqrt(chi2)
+    rho = np.where(s <= delta, chi2, 2.0 * delta * s - delta * delta)
+    return float(np.sum(rho[active])), chi2
+
+
 def bundle_adjust(Ts: np.ndarray, fixed: np.ndarray, P: np.ndarray, cam_idx: np.ndarray,
                   pt_idx: np.ndarray, obs: np.ndarray, stereo: np.ndarray, info: np.ndarray,
                   intr, iterations: int = 10, lm_lambda: float = 1e-3, abort=None,
@@ -109,21 +132,10 @@ def bundle_adjust(Ts: np.ndarray, fixed: np.ndarray, P: np.ndarray, cam_idx: np.
     active = np.ones(len(obs), dtype=bool)
 
     def residuals(Ts_, P_):
-        R = Ts_[cam_idx, :3, :3]
-        Pc = (R @ P_[pt_idx][:, :, None])[:, :, 0] + Ts_[cam_idx, :3, 3]
-        z = Pc[:, 2]
-        iz = 1.0 / np.where(np.abs(z) < 1e-9, 1e-9, z)
-        u = fx * Pc[:, 0] * iz + cx
-        v = fy * Pc[:, 1] * iz + cy
-        e = np.stack([obs[:, 0] - u, obs[:, 1] - v,
-                      np.where(stereo, obs[:, 2] - (u - bf * iz), 0.0)], axis=1)
-        return e, Pc, R
+        return _ba_residuals(Ts_, P_, cam_idx, pt_idx, obs, stereo, intr)
 
     def robust_cost(e):
-        chi2 = info * np.einsum("ij,ij->i", e, e)
-        s = np.sqrt(chi2)
-        rho = np.where(s <= delta, chi2, 2.0 * delta * s - delta * delta)
-        return float(np.sum(rho[active])), chi2
+        return _huber_cost(e, info, delta, active)
 
     lam = lm_lambda
     half = max(1, iterations // 2)
@@ -594,21 +606,10 @@ def bundle_adjust_sparse(Ts: np.ndarray, fixed: np.ndarray, P: np.ndarray, cam_i
     active = np.ones(len(obs), dtype=bool)
 
     def residuals(Ts_, P_):
-        R = Ts_[cam_idx, :3, :3]
-        Pc = np.einsum("nij,nj->ni", R, P_[pt_idx]) + Ts_[cam_idx, :3, 3]
-        z = Pc[:, 2]
-        iz = 1.0 / np.where(np.abs(z) < 1e-9, 1e-9, z)
-        u = fx * Pc[:, 0] * iz + cx
-        v = fy * Pc[:, 1] * iz + cy
-        e = np.stack([obs[:, 0] - u, obs[:, 1] - v,
-                      np.where(stereo, obs[:, 2] - (u - bf * iz), 0.0)], axis=1)
-        return e, Pc, R
+        return _ba_residuals(Ts_, P_, cam_idx, pt_idx, obs, stereo, intr)
 
     def robust_cost(e):
-        chi2 = info * np.einsum("ij,ij->i", e, e)
-        s = np.sqrt(chi2)
-        rho = np.where(s <= delta, chi2, 2.0 * delta * s - delta * delta)
-        return float(np.sum(rho[active])), chi2
+        return _huber_cost(e, info, delta, active)
 
     ovi = np.nonzero(cvar[cam_idx] >= 0)[0]
     oc = cvar[cam_idx[ovi]]
