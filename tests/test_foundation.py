@@ -73,6 +73,19 @@ def test_launch_args_reach_the_nodes():
     assert yaml.safe_load(r.stdout)["/use_sim_time"] is False
 
 
+def test_launch_prefix_args_reach_the_node_command():
+    """pose_prefix / depth_prefix / fusion_prefix put a command in front of that node only."""
+    def command(node, *args):
+        r = subprocess.run(["roslaunch", "--args", node, "mdr_slam", "mdr.launch"] + list(args),
+                           capture_output=True, text=True)
+        assert r.returncode == 0, r.stderr
+        return r.stdout.strip().splitlines()[-1]
+    assert command("/depth_node").split()[0].endswith("/depth_node")
+    assert command("/depth_node", "depth_prefix:=nice -n 5").startswith("nice -n 5 ")
+    assert not command("/pose_node", "depth_prefix:=nice -n 5").startswith("nice")
+    assert command("/fusion_node", "fusion_prefix:=taskset -c 1").startswith("taskset -c 1 ")
+
+
 @pytest.mark.parametrize("preset", ["sample", "euroc", "kitti"])
 def test_dataset_presets_overlay_every_node(preset):
     """config/<preset>/{pose,depth,fusion}.yaml exist and launch's preset:= loads them over the
