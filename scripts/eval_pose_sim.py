@@ -122,7 +122,8 @@ def track(bag: str, params: dict) -> dict:
             "keyframes": n_kfs, "ms": np.array(ms), "global_ba": gba, "loop_pairs": loops}
 
 
-def evaluate(name: str, out: str, rate: float, scale: float, compare: bool) -> dict:
+def evaluate(name: str, out: str, rate: float, scale: float, compare: bool,
+             overrides: dict = None) -> dict:
     import yaml
     from mdr_slam.eval import ate
     from mdr_slam.io import read_tum, write_tum
@@ -134,9 +135,10 @@ def evaluate(name: str, out: str, rate: float, scale: float, compare: bool) -> d
         segments = yaml.safe_load(f).get("segments", [])
     gt = read_tum(os.path.join(d, "groundtruth.tum"))
     path = float(gt.path_length()) if callable(gt.path_length) else float(gt.path_length)
-    params = load_params("pose")
+    params = dict(load_params("pose"), **(overrides or {}))
     res = {"sequence": name, "scene": scene, "trajectory": kind, "duration_s": duration,
-           "seed": seed, "rate_hz": rate, "scale": scale, "path_length_m": path, **rinfo}
+           "seed": seed, "rate_hz": rate, "scale": scale, "path_length_m": path,
+           "param_overrides": dict(overrides or {}), **rinfo}
     runs = [("lc", True)] + ([("no_lc", False)] if (compare and loop_seq) else [])
     for tag, lc in runs:
         p = dict(params, loop_closing=lc)
@@ -221,16 +223,25 @@ def main(argv=None) -> int:
     ap.add_argument("--no-compare", action="store_true",
                     help="skip the loop_closing: false runs")
     ap.add_argument("--json", default=None)
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a pose parameter of config/pose.yaml (repeatable), e.g. ba_tol=0")
     a = ap.parse_args(argv)
     names = [s.strip() for s in a.sequences.split(",") if s.strip()]
     bad = [n for n in names if n not in SEQUENCES]
     if bad:
         ap.error("unknown sequences %s (known: %s)" % (bad, ", ".join(SEQUENCES)))
+    import yaml
+    overrides = {}
+    for item in a.set:
+        k, sep, v = item.partition("=")
+        if not sep:
+            ap.error("--set wants KEY=VALUE: %r" % item)
+        overrides[k.strip()] = yaml.safe_load(v)
     os.makedirs(a.out, exist_ok=True)
     results = []
     for n in names:
         print("== %s" % n, flush=True)
-        r = evaluate(n, a.out, a.rate, a.scale, not a.no_compare)
+        r = evaluate(n, a.out, a.rate, a.scale, not a.no_compare, overrides)
         results.append(r)
         print(json.dumps({k: v for k, v in r["lc"].items() if k != "segments"}), flush=True)
     print()
