@@ -29,11 +29,11 @@ import os
 import sys
 import time
 
-import numpy as np
-
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(ROOT, "src", "mdr_slam", "src"))
 
+import mdr_slam  # noqa: E402,F401  (before numpy, as in the node: picks OpenBLAS's kernels)
+import numpy as np  # noqa: E402
 from mdr_slam.camera import StereoCamera  # noqa: E402
 from mdr_slam.geometry import inv_T  # noqa: E402
 from mdr_slam.io import Trajectory  # noqa: E402
@@ -228,7 +228,12 @@ def main(argv=None):
                     help="threads: live feed keeping the newest frame (pose_node), count drops")
     ap.add_argument("--no-threads", action="store_true", help="only the synchronous mode")
     ap.add_argument("--only-threads", action="store_true", help="only the threaded mode")
+    ap.add_argument("--blas-threads", type=int, default=1,
+                    help="BLAS threads, as pose_node's blas_threads (0: the library's default)")
     args = ap.parse_args(argv)
+    if args.blas_threads > 0:
+        from threadpoolctl import threadpool_limits
+        threadpool_limits(limits=args.blas_threads, user_api="blas")
     global NO_THREADS, ONLY_THREADS
     NO_THREADS, ONLY_THREADS = args.no_threads, args.only_threads
     print("load average at start: %.2f %.2f %.2f (2-core machine shared: figures are indicative)"
