@@ -118,12 +118,22 @@ def bundle_adjust(Ts: np.ndarray, fixed: np.ndarray, P: np.ndarray, cam_idx: np.
     ``tol`` > 0 a round ends early once a step lowers the robust cost by less than ``tol`` times
     its value (converged: the remaining iterations would move nothing that matters).
     """
+    Ts, P, _, _ = _robust_lm(Ts, fixed, P, cam_idx, pt_idx, obs, stereo, info, intr, iterations,
+                             lm_lambda, abort, tol, sparse=False)
+    return Ts, P
+
+
+def _robust_lm(Ts, fixed, P, cam_idx, pt_idx, obs, stereo, info, intr, iterations, lm_lambda,
+               abort, tol, sparse):
+    """The LM loop of :func:`bundle_adjust` and :func:`bundle_adjust_sparse`: W (6 C x 3 M) as a
+    dense array (few cameras: one BLAS product) or as scipy.sparse (many cameras). Returns
+    (Ts, P, active observations, residuals at the result)."""
     import scipy.sparse as sp
     fx, fy, cx, cy, bf = intr
-    Ts = Ts.copy()
-    P = P.copy()
+    Ts = np.array(Ts, dtype=float)
+    P = np.array(P, dtype=float)
     C, M = len(Ts), len(P)
-    var = np.nonzero(~fixed)[0]
+    var = np.nonzero(~np.asarray(fixed, dtype=bool))[0]
     cvar = np.full(C, -1, dtype=np.int64)
     cvar[var] = np.arange(len(var))
     nv = len(var)
@@ -145,8 +155,10 @@ def bundle_adjust(Ts: np.ndarray, fixed: np.ndarray, P: np.ndarray, cam_idx: np.
     ovi = np.nonzero(cvar[cam_idx] >= 0)[0]
     oc = cvar[cam_idx[ovi]]
     pt_ov = pt_idx[ovi]
-    w_flat = ((6 * oc[:, None, None] + np.arange(6)[None, :, None]) * (3 * M) +
-              3 * pt_ov[:, None, None] + np.arange(3)[None, None, :])
+    rows = (6 * oc[:, None, None] + np.arange(6)[None, :, None]) + np.zeros((1, 1, 3), np.int64)
+    cols = (3 * pt_ov[:, None, None] + np.arange(3)[None, None, :]) + np.zeros((1, 6, 1), np.int64)
+    rows, cols = rows.ravel(), cols.ravel()
+    w_flat = rows * (3 * M) + cols
     cam_ar = np.arange(nv)
 
     cur = residuals(Ts, P)
@@ -171,8 +183,11 @@ def bundle_adjust(Ts: np.ndarray, fixed: np.ndarray, P: np.ndarray, cam_idx: np.
         bc = _block_sum(oc, (JcT @ e[ovi][:, :, None])[:, :, 0], nv)
         Wb = JcT @ Jl[ovi]                                             # (n, 6, 3)
         if nv:
-            Wd = np.zeros((6 * nv, 3 * M))
-            Wd.ravel()[w_flat.ravel()] = Wb.ravel()
+            if sparse:
+                Wd = sp.csr_matrix((Wb.ravel(), (rows, cols)), shape=(6 * nv, 3 * M))
+            else:
+                Wd = np.zeros((6 * nv, 3 * M))
+                Wd.ravel()[w_flat] = Wb.ravel()
         improved = False
         for _ in range(6):
             Hpp_d = Hpp + (lam * np.einsum("nii->ni", Hpp) + 1e-9)[:, :, None] * np.eye(3)
@@ -180,9 +195,14 @@ def bundle_adjust(Ts: np.ndarray, fixed: np.ndarray, P: np.ndarray, cam_idx: np.
             if nv:
                 Hcc_d = Hcc + (lam * np.einsum("nii->ni", Hcc) + 1e-9)[:, :, None] * np.eye(6)
                 # Schur complement S = Hcc - W V^-1 W^T (V block diagonal: per-point 3x3)
-                WVd = np.zeros((6 * nv, 3 * M))
-                WVd.ravel()[w_flat.ravel()] = (Wb @ Vinv[pt_ov]).ravel()
-                S = -(WVd @ Wd.T)
+                if sparse:
+                    WVd = sp.csr_matrix(((Wb @ Vinv[pt_ov]).ravel(), (rows, cols)),
+                                        shape=(6 * nv, 3 * M))
+                    S = -(WVd @ Wd.T).toarray()
+                else:
+                    WVd = np.zeros((6 * nv, 3 * M))
+                    WVd.ravel()[w_flat] = (Wb @ Vinv[pt_ov]).ravel()
+                    S = -(WVd @ Wd.T)
                 S4 = S.reshape(nv, 6, nv, 6)          # a view: add the 6x6 diagonal blocks
                 S4[cam_ar, :, cam_ar, :] += Hcc_d
                 rhs = -bc.ravel() + WVd @ bp.ravel()
@@ -218,7 +238,7 @@ def bundle_adjust(Ts: np.ndarray, fixed: np.ndarray, P: np.ndarray, cam_idx: np.
                 continue
             break
         it += 1
-    return Ts, P
+    return Ts, P, active, cur
 
 
 def _block_sum(idx: np.ndarray, vals: np.ndarray, n: int) -> np.ndarray:
@@ -592,93 +612,10 @@ def bundle_adjust_sparse(Ts: np.ndarray, fixed: np.ndarray, P: np.ndarray, cam_i
     scipy.sparse matrix, so memory grows with the observations instead of cameras x points (the
     dense W of the local solver would be gigabytes for a whole map). Returns (Ts, P, inlier mask
     of the observations after the last outlier round)."""
-    import scipy.sparse as sp
-    fx, fy, cx, cy, bf = intr
-    Ts = np.array(Ts, dtype=float)
-    P = np.array(P, dtype=float)
-    C, M = len(Ts), len(P)
-    var = np.nonzero(~np.asarray(fixed, dtype=bool))[0]
-    cvar = np.full(C, -1, dtype=np.int64)
-    cvar[var] = np.arange(len(var))
-    nv = len(var)
+    Ts, P, active, (e, Pc, _) = _robust_lm(Ts, fixed, P, cam_idx, pt_idx, obs, stereo, info,
+                                           intr, iterations, lm_lambda, abort, 0.0, sparse=True)
     chi2_th = np.where(stereo, CHI2_STEREO, CHI2_MONO)
-    delta = np.sqrt(chi2_th)
-    active = np.ones(len(obs), dtype=bool)
-
-    def residuals(Ts_, P_):
-        return _ba_residuals(Ts_, P_, cam_idx, pt_idx, obs, stereo, intr)
-
-    def robust_cost(e):
-        return _huber_cost(e, info, delta, active)
-
-    ovi = np.nonzero(cvar[cam_idx] >= 0)[0]
-    oc = cvar[cam_idx[ovi]]
-    pt_ov = pt_idx[ovi]
-    # COO pattern of the (6 x 3) blocks of W, row-major inside each block
-    rows = (6 * oc[:, None, None] + np.arange(6)[None, :, None]) + np.zeros((1, 1, 3), np.int64)
-    cols = (3 * pt_ov[:, None, None] + np.arange(3)[None, None, :]) + np.zeros((1, 6, 1), np.int64)
-    rows, cols = rows.ravel(), cols.ravel()
-    lam = lm_lambda
-    half = max(1, iterations // 2)
-    for it in range(iterations):
-        if abort is not None and it > 0 and abort():
-            break
-        if it == half:
-            e, Pc, _ = residuals(Ts, P)
-            _, chi2 = robust_cost(e)
-            active &= (chi2 <= chi2_th) & (Pc[:, 2] > 0)
-        e, Pc, R = residuals(Ts, P)
-        cost, chi2 = robust_cost(e)
-        s = np.sqrt(np.maximum(chi2, 1e-12))
-        w = info * np.where(s > delta, delta / s, 1.0) * active
-        Jc, Jl = _pose_point_jacobians(Pc, R, stereo, fx, fy, bf)
-        JlT = Jl.transpose(0, 2, 1) * w[:, None, None]
-        Hpp = _block_sum(pt_idx, JlT @ Jl, M)
-        bp = _block_sum(pt_idx, (JlT @ e[:, :, None])[:, :, 0], M)
-        JcT = Jc[ovi].transpose(0, 2, 1) * w[ovi][:, None, None]
-        Hcc = _block_sum(oc, JcT @ Jc[ovi], nv)
-        bc = _block_sum(oc, (JcT @ e[ovi][:, :, None])[:, :, 0], nv)
-        Wb = JcT @ Jl[ovi]
-        W = sp.csr_matrix((Wb.ravel(), (rows, cols)), shape=(6 * nv, 3 * M)) if nv else None
-        improved = False
-        for _ in range(6):
-            Hpp_d = Hpp + (lam * np.einsum("nii->ni", Hpp) + 1e-9)[:, :, None] * np.eye(3)
-            Vinv = _inv3(Hpp_d)
-            if nv:
-                Hcc_d = Hcc + (lam * np.einsum("nii->ni", Hcc) + 1e-9)[:, :, None] * np.eye(6)
-                WV = sp.csr_matrix(((Wb @ Vinv[pt_ov]).ravel(), (rows, cols)),
-                                   shape=(6 * nv, 3 * M))
-                S = -(WV @ W.T).toarray()
-                idx = 6 * np.arange(nv)[:, None] + np.arange(6)[None, :]
-                S[idx[:, :, None], idx[:, None, :]] += Hcc_d
-                rhs = -bc.ravel() + WV @ bp.ravel()
-                try:
-                    dc = np.linalg.solve(S, rhs).reshape(nv, 6)
-                except np.linalg.LinAlgError:
-                    lam *= 10
-                    continue
-                dp = -(Vinv @ (bp + (W.T @ dc.ravel()).reshape(M, 3))[:, :, None])[:, :, 0]
-            else:
-                dc = np.zeros((0, 6))
-                dp = -(Vinv @ bp[:, :, None])[:, :, 0]
-            Ts_try = Ts.copy()
-            if nv:
-                Rd = Rotation.from_rotvec(dc[:, 3:]).as_matrix()
-                Ts_try[var, :3, :3] = Rd @ Ts[var, :3, :3]
-                Ts_try[var, :3, 3] = np.einsum("nij,nj->ni", Rd, Ts[var, :3, 3]) + dc[:, :3]
-            P_try = P + dp
-            e2, _, _ = residuals(Ts_try, P_try)
-            cost2, _ = robust_cost(e2)
-            if cost2 < cost:
-                Ts, P = Ts_try, P_try
-                lam = max(lam / 3.0, 1e-7)
-                improved = True
-                break
-            lam *= 4.0
-        if not improved:
-            break
-    e, Pc, _ = residuals(Ts, P)
-    _, chi2 = robust_cost(e)
+    _, chi2 = _huber_cost(e, info, np.sqrt(chi2_th), active)
     inlier = active & (chi2 <= chi2_th) & (Pc[:, 2] > 0)
     return Ts, P, inlier
 
