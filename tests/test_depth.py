@@ -298,6 +298,17 @@ def test_stereo_depth_end_to_end_on_a_synthetic_wall():
     assert len(out) > 0
     with pytest.raises(ValueError, match="calibration"):
         sd.process(1.2, left[:100], right[:100], np.eye(4))
+    # measure (ELAS, no pose) then update (filter, with the pose) == process: the node matches
+    # a pair while its pose is still being tracked
+    sa = StereoDepth(cam, {"elas": {"disp_max": 64, "subsampling": False}, "tau": 0.02, "stride": 1})
+    sb = StereoDepth(cam, {"elas": {"disp_max": 64, "subsampling": False}, "tau": 0.02, "stride": 1})
+    for i in range(3):
+        T = make_T(np.eye(3), [0.01 * i, 0, 0])
+        oa = sa.process(0.1 * i, left, right, T)
+        ob = sb.update(0.1 * i, sb.measure(left, right), T)
+        np.testing.assert_array_equal(oa.points, ob.points)
+        np.testing.assert_array_equal(oa.variance, ob.variance)
+    assert ob.timings["total"] >= ob.timings["elas"] + ob.timings["filter"] - 1e-9
     # ELAS-only through the same entry point, ELAS params flat on the command line style
     sd0 = StereoDepth(cam, {"temporal": False, "elas_disp_max": 48})
     assert sd0.matcher.params["disp_max"] == 48

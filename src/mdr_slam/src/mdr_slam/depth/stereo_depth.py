@@ -115,13 +115,21 @@ class StereoDepth:
                 rectified: bool = False, new_keyframe: Optional[bool] = None,
                 keyframe_id: Optional[int] = None) -> DepthOutput:
         """One stereo pair with the left camera pose -> DepthOutput (points in the left camera)."""
-        t0 = time.perf_counter()
-        Z, var, grey, t = self.measure(left, right, rectified)
+        return self.update(stamp, self.measure(left, right, rectified), T_map_cam, new_keyframe,
+                           keyframe_id)
+
+    def update(self, stamp: float, measurement: tuple, T_map_cam: np.ndarray,
+               new_keyframe: Optional[bool] = None,
+               keyframe_id: Optional[int] = None) -> DepthOutput:
+        """The temporal filter's step on ``measure``'s result: ELAS needs no pose, so a node can
+        match a pair while the pose of that frame is still being tracked."""
+        Z, var, grey, t = measurement
+        t = dict(t)
         t1 = time.perf_counter()
         out = self.filter.process(stamp, T_map_cam, Z, var, grey, new_keyframe, keyframe_id)
-        t2 = time.perf_counter()
-        t["filter"] = 1e3 * (t2 - t1)
-        t["total"] = 1e3 * (t2 - t0)
+        t["filter"] = 1e3 * (time.perf_counter() - t1)
+        t["total"] = t.get("rectify", 0.0) + t.get("elas", 0.0) + t.get("measurement", 0.0) + \
+            t["filter"]
         out.timings = t
         out.depth = Z
         return out

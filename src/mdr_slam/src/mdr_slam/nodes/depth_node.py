@@ -284,6 +284,14 @@ class DepthNode:
             self.counts["skipped"] += 1
             return
         frame = self.p["camera_frame"] or left.header.frame_id or "camera_left_optical_frame"
+        # ELAS first: it needs no pose, and the pose node is still tracking this frame (waiting
+        # for the pose before matching made each frame cost tracking + ELAS in wall time)
+        try:
+            meas = self.depth.measure(L, R)
+        except ValueError as e:
+            self.warn("depth", "depth_node: input skipped: %s" % e)
+            self.counts["skipped"] += 1
+            return
         T = self._pose_at(stamp, frame)
         if T is None:
             self.counts["skipped"] += 1
@@ -297,7 +305,7 @@ class DepthNode:
                     new_kf, kf_id = True, due[-1][1]
                     self.kf_pending = [k for k in self.kf_pending if k[0] > t + 1e-4]
             try:
-                out = self.depth.process(t, L, R, T, new_keyframe=new_kf, keyframe_id=kf_id)
+                out = self.depth.update(t, meas, T, new_keyframe=new_kf, keyframe_id=kf_id)
             except ValueError as e:
                 self.warn("depth", "depth_node: input skipped: %s" % e)
                 self.counts["skipped"] += 1
