@@ -72,6 +72,7 @@ class _Listener:
         self.n_pose = 0
         self.n_depth = 0
         self.states: Dict[int, int] = {}
+        self.tracking_ms: List[float] = []   # wall time per tracked pair (pose node)
         self.diag: Dict[str, Dict[str, str]] = {}
         self.diag_time: Dict[str, float] = {}   # wall time of each status's last report
         self.latency_s: List[float] = []
@@ -105,6 +106,7 @@ class _Listener:
     def _state(self, msg):
         with self.lock:
             self.states[msg.state] = self.states.get(msg.state, 0) + 1
+            self.tracking_ms.append(float(msg.tracking_time_ms))
 
     def _diag(self, msg):
         with self.lock:
@@ -381,6 +383,8 @@ def _summarize(args, bag, lst: "_Listener", samples, elapsed, pose_source) -> di
         else lst.n_pose
     r["tracking_states"] = {{0: "NOT_INITIALIZED", 1: "OK", 2: "LOST", 3: "RELOCALIZED"}.get(k, k): v
                             for k, v in lst.states.items()}
+    r["tracking_ms"] = {k: (None if v is None else round(v, 1))
+                        for k, v in _stats(lst.tracking_ms).items()}
     r["pose_hz"] = round(_rate(lst.t_pose), 2)
     r["depth_hz"] = round(_rate(lst.t_depth), 2)
     r["map_integration_hz"] = round(_integration_rate(lst.integrated), 2)
@@ -450,6 +454,9 @@ def _report_md(r) -> str:
              "| stereo pairs received by depth / in the bag | %s / %s |" % (r["frames_in"],
                                                                           r["frames_in_bag"]),
              "| frames tracked | %s |" % r["frames_tracked"],
+             "| pose node: frames skipped while busy; tracking wall ms median / p90 / max | "
+             "%s; %s / %s / %s |" % (r["pose_dropped_busy"], r["tracking_ms"]["median"],
+                                     r["tracking_ms"]["p90"], r["tracking_ms"]["max"]),
              "| latency image stamp -> map, median / p90 | %s / %s ms |" % (
                  r["latency_ms"]["median"], r["latency_ms"]["p90"]),
              "| latency image stamp -> depth cloud, median / p90 | %s / %s ms |" % (

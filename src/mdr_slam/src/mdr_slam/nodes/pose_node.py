@@ -265,6 +265,7 @@ class OrbNode:
         self.T_map_odom = np.eye(4)
         self.kf_poses = {}                 # last published T_map_kf per keyframe id
         self.last_stamp = None
+        self.last_state = "NOT_INITIALIZED"
         self.clock = ClockWatch()          # ROS time jumping back (bag loop): a new timeline
         self.lock = __import__("threading").Lock()
         self.pub_state = rospy.Publisher("/mdr/tracking_state", TrackingState, queue_size=10)
@@ -393,6 +394,13 @@ class OrbNode:
         st.tracking_time_ms = res.time_ms
         self.pub_state.publish(st)
         self.relay.note_tracking(res)
+        if res.state != self.last_state:   # transitions only: at most a few lines per run
+            import rospy
+            log = rospy.logwarn if res.state == "LOST" else rospy.loginfo
+            log("tracking %s -> %s at %.3f (%d points tracked, %d keyframes, %d frames skipped "
+                "while busy so far)", self.last_state, res.state, stamp.to_sec(), res.n_tracked,
+                res.n_keyframes, self.relay.warn.counts.get("busy", 0))
+            self.last_state = res.state
         if res.corrections is not None:
             reason, cid, kfs = res.corrections
             if reason == "loop_closure" and res.ref_keyframe_id in kfs and \
