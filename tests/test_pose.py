@@ -200,6 +200,69 @@ def test_relocalization_after_lost(sequence):
     s.shutdown()
 
 
+def test_lost_frame_recovered_by_coasting_on_the_motion_model(sequence):
+    """A covered frame (blank images) in a turn: the next real frame is tracked from the last
+    tracked frame and the motion model scaled to the gap (OK, no relocalization); beyond
+    lost_coast_s only relocalization is tried."""
+    poses, images = sequence
+    keep = {"reset_if_lost_below_kfs": 0}   # a young map would otherwise start anew
+    s = System(CAM, params=keep, threads=False)
+    for i in range(12):
+        assert s.track(0.05 * i, *images[i]).state == "OK"
+    z = np.zeros_like(images[0][0])
+    assert s.track(0.05 * 12, z, z).state == "LOST"
+    assert s.tracking.velocity is not None        # kept for lost_coast_s
+    r = s.track(0.05 * 13, *images[13])
+    assert r.state == "OK", r.state
+    T_true = inv_T(poses[0]) @ poses[13]
+    assert np.linalg.norm(r.T_map_cam[:3, 3] - T_true[:3, 3]) < 0.03
+    s.shutdown()
+    s = System(CAM, params=dict(keep, lost_coast_s=0.0), threads=False)   # ORB-SLAM2's way
+    for i in range(12):
+        s.track(0.05 * i, *images[i])
+    s.track(0.05 * 12, z, z)
+    assert s.tracking.velocity is None
+    assert s.track(0.05 * 13, *images[13]).state in ("RELOCALIZED", "LOST")
+    s.shutdown()
+
+
+def test_mapping_threads_yield_while_a_frame_is_tracked():
+    """yield_to_tracking blocks while System.track runs (threads) and returns once it ends,
+    or after yield_max_ms; synchronous mode never waits."""
+    import threading
+    import time
+    s = System(CAM, params={"yield_max_ms": 2000.0}, threads=True)
+    try:
+        s.tracking_idle.clear()              # as System.track does on entry
+        done = threading.Event()
+        th = threading.Thread(target=lambda: (s.yield_to_tracking(), done.set()))
+        th.start()
+        time.sleep(0.2)
+        assert not done.is_set()             # the mapping side waits for the frame
+        s.tracking_idle.set()                # System.track returns
+        assert done.wait(1.0)
+        th.join()
+        s.p["yield_max_ms"] = 50.0
+        s.tracking_idle.clear()
+        t0 = time.monotonic()
+        s.yield_to_tracking()                # never longer than yield_max_ms
+        assert time.monotonic() - t0 < 1.0
+    finally:
+        s.tracking_idle.set()
+        s.shutdown()
+    z = np.zeros((320, 480), np.uint8)
+    s = System(CAM, threads=True)
+    s.track(0.0, z, z)
+    assert s.tracking_idle.is_set()          # cleared only while a frame is tracked
+    s.shutdown()
+    s = System(CAM, threads=False)
+    s.tracking_idle.clear()
+    t0 = time.monotonic()
+    s.yield_to_tracking()
+    assert time.monotonic() - t0 < 0.05
+    s.shutdown()
+
+
 def test_blank_images_do_not_initialise():
     s = System(CAM, threads=False)
     z = np.zeros((320, 480), np.uint8)

@@ -49,16 +49,8 @@ def triangulate(P1: np.ndarray, P2: np.ndarray, x1: np.ndarray, x2: np.ndarray) 
 
 def feature_nodes(voc, desc: np.ndarray, depth: int) -> np.ndarray:
     """Vocabulary tree node of each descriptor at ``depth`` (1 = the root's children): ORB-SLAM2's
-    FeatureVector "direct index" (DBoW2 transform with levelsup). Vectorized descent."""
-    k = voc.k
-    depth = max(1, min(int(depth), voc.L))
-    node = np.zeros(len(desc), dtype=np.int64)
-    ar = np.arange(k)
-    for lvl in range(depth):
-        cand = node[:, None] * k + ar[None, :]                          # (N, k)
-        d = hamming(np.repeat(desc, k, axis=0), voc.levels[lvl][cand.ravel()]).reshape(-1, k)
-        node = cand[np.arange(len(desc)), np.argmin(d, axis=1)]
-    return node
+    FeatureVector "direct index" (DBoW2 transform with levelsup)."""
+    return voc.transform_words(desc, depth)
 
 
 def same_node_pairs(n1: np.ndarray, n2: np.ndarray):
@@ -166,22 +158,30 @@ class LocalMapping:
             kf = self.queue.popleft()
             self.abort_ba = False
         mp = self.map
+        pause = self.system.yield_to_tracking
+        pause()
         with mp.lock:
             if kf.bad:
                 return
             self.process_new_keyframe(kf)
             self.map_point_culling(kf)
+        pause()
         # the epipolar search reads keyframes only; it takes the map lock just to add points, so
         # tracking is not blocked behind it (it held the lock ~250 ms per keyframe under load)
         self.create_new_map_points(kf)
         if not self.queue and len(mp.keyframes) > 2 and self.p["local_ba"]:
             import time
             t0 = time.perf_counter()
+
+            def abort():   # per LM iteration, without the map lock
+                pause()
+                return self.abort_ba and self.system.threads
+            pause()
             moved, _ = Optimizer.local_bundle_adjustment(
                 kf, mp, n_covisible=self.p["ba_covisible"], iterations=self.p["ba_iterations"],
-                abort=lambda: self.abort_ba and self.system.threads, worker=self.ba_worker,
-                tol=self.p.get("ba_tol", 1e-3))
+                abort=abort, worker=self.ba_worker, tol=self.p.get("ba_tol", 1e-3))
             self.last_ba_ms = 1000.0 * (time.perf_counter() - t0)
+            pause()
             with mp.lock:
                 if moved:
                     self.corrections.append(("local_ba", {k: mp.keyframes[k].T_cw.copy()

@@ -135,10 +135,10 @@ class LoopClosing:
 
     def relocalization_candidates(self, frame, n: int):
         """Keyframes most similar to ``frame`` by BoW (ORB-SLAM2 DetectRelocalizationCandidates)."""
+        if not self.db.bows:
+            return None
+        bow = self.voc.transform(frame.desc)   # the frame's own descriptors: no lock needed
         with self.map.lock:
-            if not self.db.bows:
-                return None
-            bow = self.voc.transform(frame.desc)
             res = self.db.query(bow, top=n)
             return [self.map.keyframes[k] for k, _ in res
                     if k in self.map.keyframes and not self.map.keyframes[k].bad]
@@ -146,16 +146,21 @@ class LoopClosing:
     # ------------------------------------------------------------------ per keyframe
     def process(self, kf) -> None:
         closed = False
+        self.system.yield_to_tracking()
+        bow = self.bow(kf)   # the keyframe's descriptors never change: outside the map lock
         with self.map.lock:
             if kf.bad:
                 return
-            bow = self.bow(kf)
             cand = self.detect_loop(kf, bow)
             if cand is not None:
                 closed = self.try_close(kf, cand)
             self.db.add(kf.id, bow)
         if closed and self.p.get("global_ba", True):
             self.run_global_ba()
+
+    def _gba_abort(self) -> bool:
+        self.system.yield_to_tracking()   # per iteration, without the map lock
+        return self.stop_flag
 
     def run_global_ba(self) -> dict:
         """Global bundle adjustment after a loop correction (ORB-SLAM2 RunGlobalBundleAdjustment):
@@ -169,7 +174,7 @@ class LoopClosing:
         t0 = time.perf_counter()
         res = global_bundle_adjustment(   # the first keyframe holds the map frame (ORB-SLAM2)
             self.map, iterations=int(self.p.get("global_ba_iterations", 20)),
-            abort=(lambda: self.stop_flag) if self.system.threads else None,
+            abort=self._gba_abort if self.system.threads else None,
             lock_solve=not self.system.threads)
         res["ms"] = 1000.0 * (time.perf_counter() - t0)
         self.global_ba_runs.append(res)

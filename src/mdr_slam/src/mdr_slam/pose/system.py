@@ -11,6 +11,7 @@ frame is tracked, which makes results deterministic (the offline runner).
 """
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import dataclass
 from typing import Dict, List, Optional, Tuple
@@ -57,7 +58,9 @@ DEFAULT_PARAMS = {
     "loop_max_drift": 0.3,       # a loop may move the keyframe <= this x the path since the match
     "loop_max_rotation_deg": 45.0,  # ... and turn it at most this much (false-loop gate)
     "reloc_candidates": 10,
-    "reloc_max_ms": 60.0,        # LOST: no further candidate starts after this (wall ms per frame)
+    "lost_coast_s": 0.5,         # LOST: motion-model tracking from the last tracked frame goes on this long
+    "reloc_max_ms": 60.0,
+    "yield_max_ms": 60.0,        # threads: mapping waits at most this long for a frame's tracking (0: off)        # LOST: no further candidate starts after this (wall ms per frame)
     "backpressure_inliers": 80,  # threads: wait for LocalMapping when tracking gets this weak
     "min_inliers": 30,           # local-map inliers for OK (ORB-SLAM2: 30)
     "low_texture_points": 150,   # frames with fewer stereo keypoints are low-texture ...
@@ -93,6 +96,7 @@ class TrackResult:
     track_ms: float = 0.0                      # tracking alone (time_ms adds sync-mode mapping)
     track_cpu_ms: float = 0.0                  # CPU of the calling thread for tracking alone
     lock_wait_ms: float = 0.0                  # waiting for the map lock (mapping threads)
+    frame_ms: float = 0.0                      # Frame: ORB on both images and stereo matching
 
 
 class System:
@@ -115,6 +119,12 @@ class System:
                                             min_fast_threshold=p["min_fast_threshold"])
         self.request_reset = False
         self.correction_id = 0
+        # threads: set while no frame is being tracked. LocalMapping and LoopClosing wait for it
+        # between their steps and BA iterations (yield_to_tracking): Python runs one thread at a
+        # time (the GIL), so without this a keyframe's BA takes half of tracking's turns and the
+        # frame's wall time doubles (a live node then skips frames)
+        self.tracking_idle = threading.Event()
+        self.tracking_idle.set()
         self._build()
 
     def _build(self) -> None:
@@ -148,8 +158,22 @@ class System:
         kfs = self.map.good_keyframes()
         return sorted(kfs, key=lambda k: -k.id)[: self.p["reloc_candidates"]]
 
+    def yield_to_tracking(self) -> None:
+        """Called by the mapping threads where they hold no map lock: wait (at most
+        ``yield_max_ms``) while a frame is being tracked, so tracking has the interpreter."""
+        if self.threads and not self.tracking_idle.is_set():
+            self.tracking_idle.wait(float(self.p["yield_max_ms"]) / 1000.0)
+
     # ------------------------------------------------------------------ API
     def track(self, stamp: float, left_rect: np.ndarray, right_rect: np.ndarray) -> TrackResult:
+        if self.threads and self.p["yield_max_ms"] > 0:
+            self.tracking_idle.clear()
+        try:
+            return self._track(stamp, left_rect, right_rect)
+        finally:
+            self.tracking_idle.set()
+
+    def _track(self, stamp: float, left_rect: np.ndarray, right_rect: np.ndarray) -> TrackResult:
         t0 = time.perf_counter()
         c0 = time.thread_time()
         if self.request_reset:
@@ -161,12 +185,14 @@ class System:
         frame = Frame(stamp, left_rect, right_rect, self.camera, self.extractor,
                       self.extractor_right, th_depth_factor=self.p["th_depth"])
         frame.n_primary = getattr(self.extractor, "n_primary", frame.N)   # low-texture test
+        t_frame = 1000.0 * (time.perf_counter() - t0)
         out = self.tracking.track(frame)
         state = self.tracking.state
         tracked_ok = state in (OK, RELOCALIZED) and frame.T_cw is not None and \
             self.tracking.records[-1][1] is not None
         t_track = 1000.0 * (time.perf_counter() - t0)
         c_track = 1000.0 * (time.thread_time() - c0)
+        self.tracking_idle.set()   # the mapping threads may go on (back-pressure waits for them)
         if self.threads and tracked_ok and self.local_mapping.queue_size() >= 2 and \
                 self.tracking.n_matches_inliers < self.p["backpressure_inliers"]:
             # back-pressure: weak tracking while LocalMapping lags (the GIL and a loaded CPU
@@ -196,7 +222,7 @@ class System:
             n_map_points=self.tracking.n_local_points,
             n_keyframes=len(self.map.good_keyframes()),
             n_loop_closures=self.map.n_loop_closures, track_ms=t_track, track_cpu_ms=c_track,
-            lock_wait_ms=self.tracking.lock_wait_ms)
+            lock_wait_ms=self.tracking.lock_wait_ms, frame_ms=t_frame)
 
     def _collect_corrections(self):
         pending = []

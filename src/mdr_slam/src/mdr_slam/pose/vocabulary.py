@@ -19,15 +19,10 @@ from typing import Dict, Iterable, List, Optional, Tuple
 
 import numpy as np
 
-from .orb import _POPCOUNT
+from .orb import _POPCOUNT, hamming
 
 __all__ = ["ORBVocabulary", "KeyFrameDatabase", "default_vocabulary_path", "load_vocabulary",
            "builtin_training_images", "bow_score"]
-
-
-def _hamming_to(desc: np.ndarray, cents: np.ndarray) -> np.ndarray:
-    """(N, k) distances of descriptors (N, 32) to per-row candidate centroids (N, k, 32)."""
-    return _POPCOUNT[np.bitwise_xor(desc[:, None, :], cents)].sum(axis=2, dtype=np.int32)
 
 
 def _k_majority(desc: np.ndarray, k: int, rng: np.random.RandomState, iters: int = 8):
@@ -116,14 +111,22 @@ class ORBVocabulary:
         return voc
 
     # ------------------------------------------------------------------ use
-    def transform_words(self, desc: np.ndarray) -> np.ndarray:
-        """Word id of each descriptor (descend the tree, vectorized over descriptors)."""
-        node = np.zeros(len(desc), dtype=np.int64)
+    def transform_words(self, desc: np.ndarray, depth: Optional[int] = None) -> np.ndarray:
+        """Word id of each descriptor (descend the tree, vectorized over descriptors); with
+        ``depth`` (1 = the root's children) the node at that depth instead (DBoW2's direct index).
+        Distances by orb.hamming's word-wise popcount (about 2x a byte lookup table)."""
+        n = len(desc)
+        node = np.zeros(n, dtype=np.int64)
+        if n == 0:
+            return node
+        depth = self.L if depth is None else max(1, min(int(depth), self.L))
         ar = np.arange(self.k)
-        for lvl in range(self.L):
+        rep = np.repeat(np.ascontiguousarray(desc, dtype=np.uint8), self.k, axis=0)
+        rows = np.arange(n)
+        for lvl in range(depth):
             cand = node[:, None] * self.k + ar[None, :]
-            d = _hamming_to(desc, self.levels[lvl][cand])
-            node = cand[np.arange(len(desc)), np.argmin(d, axis=1)]
+            d = hamming(rep, self.levels[lvl][cand.ravel()]).reshape(n, self.k)
+            node = cand[rows, np.argmin(d, axis=1)]
         return node
 
     def transform(self, desc: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
