@@ -27,7 +27,7 @@ DEFAULTS = {
     "calib": "",                   # calibration file(s) instead of camera_info
     "sync_queue_size": 10,
     "sync_slop": 0.0,              # 0 = exact stamps (TimeSynchronizer)
-    "max_pending": 1,              # stereo pairs waiting for the tracker; older ones are dropped
+    "max_pending": 2,              # stereo pairs waiting for the tracker; older ones are dropped
     "threads": True,
     "trajectory_path": "",
     "trajectory_format": "",
