@@ -140,14 +140,14 @@ def test_demo_leaves_map_report_and_pictures(tmp_path):
     """The README's first command, small: render, map, score, draw (pictures show the map)."""
     import cv2
     out = str(tmp_path / "output")
-    r = _mdr("demo", "--out", out, "--scale", "0.5", "--max-frames", "40", "--pose-source",
-             "groundtruth", *[a.replace("--set", "--set") for a in SMALL])
+    r = _mdr("demo", "--out", out, "--scale", "0.5", "--max-frames", "40", *SMALL)   # ORB poses
     demo = os.path.join(out, "demo")
     for name in ("map.ply", "report.md", "summary.json", "trajectory.tum", "map_top.png",
                  "map_perspective.png", "trajectory.png"):
         assert os.path.getsize(os.path.join(demo, name)) > 100, name
     report = open(os.path.join(demo, "report.md")).read()
     assert "map RMSE" in report and "frames in / posed / integrated" in report, report
+    assert "Pose source: **orb**" in report and "ATE RMSE" in report, report
     for name in ("map_top.png", "map_perspective.png"):
         img = cv2.imread(os.path.join(demo, name))
         coloured = (np.abs(img.astype(int) - 255).sum(axis=2) > 60).mean()

@@ -8,11 +8,11 @@ a report and pictures under ``--out`` (default ``output/``):
     output/demo/map_rviz.png  rviz (shipped config) showing the map the fusion node publishes,
                             rendered under Xvfb (when rviz is installed; --no-rviz skips it)
 
-By default the sample's ground-truth poses place the depth (the launch file's
-``pose_source:=groundtruth``), so the map shows what depth and fusion make of the sequence; with
-``--pose-source orb`` the ORB tracker poses the frames and the map is in the tracker's ``map`` frame (its first camera
-pose); to score it, it is moved into the ground truth's frame by the SE(3) alignment of the
-trajectory (Umeyama), as evo aligns trajectories.
+By default the ORB tracker (node 1's core) poses the frames, as on a robot, and the map is in the
+tracker's ``map`` frame (its first camera pose); to score it, it is moved into the ground truth's
+frame by the SE(3) alignment of the trajectory (Umeyama), as evo aligns trajectories. With
+``--pose-source groundtruth`` the sample's true poses place the depth (the launch file's
+``pose_source:=groundtruth``), so the map shows what depth and fusion alone make of the sequence.
 """
 from __future__ import annotations
 
@@ -34,10 +34,7 @@ def add_parser(sub, name, help_text):
     p.add_argument("--out", default="output")
     p.add_argument("--scene", default="office", help="sample scene (office, corridor, garage)")
     p.add_argument("--duration", type=float, default=30.0)
-    # Ground-truth poses by default until ORB tracking is accurate and fast enough on the sample
-    # (issue #6: 600/600 frames tracked offline, 2.1 % ATE, ~1 s per frame with local mapping);
-    # --pose-source orb runs the tracker.
-    p.add_argument("--pose-source", choices=("orb", "groundtruth"), default="groundtruth")
+    p.add_argument("--pose-source", choices=("orb", "groundtruth"), default="orb")
     p.add_argument("--max-frames", type=int, default=None)
     p.add_argument("--scale", type=float, default=1.0,
                    help="image scale of the rendered sample (tests use 0.5)")
