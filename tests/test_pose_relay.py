@@ -28,16 +28,25 @@ def test_groundtruth_relay_publishes_pose_path_and_tf(rospy_client, start_proces
     tf2_ros.TransformListener(buf)
     T = make_T(quat_to_R([0.2, 0.1, -0.3, 0.9]), [1.0, 2.0, 0.5])
     base = rospy.Time.now()
-    for i in range(5):
-        pub.publish(cv.matrix_to_pose_stamped(T, base + rospy.Duration(0.1 * i), "map"))
+    for i in range(5):   # 10 cm apart: every pose joins the path
+        Ti = T.copy()
+        Ti[0, 3] += 0.1 * i
+        pub.publish(cv.matrix_to_pose_stamped(Ti, base + rospy.Duration(0.1 * i), "map"))
         rospy.sleep(0.05)
+    T = Ti
+    Tn = T.copy()
+    Tn[0, 3] += 0.001   # 1 mm on: on /mdr/pose, not a new path pose (path_min_translation)
+    pub.publish(cv.matrix_to_pose_stamped(Tn, base + rospy.Duration(0.5), "map"))
+    rospy.sleep(0.05)
     bad = cv.matrix_to_pose_stamped(T, base + rospy.Duration(1.0), "map")
     bad.pose.position.x = float("nan")
     pub.publish(bad)  # must be skipped, not crash the node
-    assert wait_for(lambda: len(got) >= 5, 10), node.output()
-    np.testing.assert_allclose(cv.pose_stamped_to_matrix(got[-1]), T, atol=1e-9)
-    assert len(got) == 5
+    assert wait_for(lambda: len(got) >= 6, 10), node.output()
+    np.testing.assert_allclose(cv.pose_stamped_to_matrix(got[-1]), Tn, atol=1e-9)
+    assert len(got) == 6
     assert wait_for(lambda: paths and len(paths[-1].poses) == 5, 5)
+    rospy.sleep(1.0)   # two path periods: still the 5 poses 10 cm apart
+    assert len(paths[-1].poses) == 5
     tf = wait_for(lambda: buf.can_transform("map", "camera_left_optical_frame",
                                             base + rospy.Duration(0.4)), 5)
     assert tf

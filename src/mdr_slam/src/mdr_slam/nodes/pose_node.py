@@ -23,6 +23,8 @@ DEFAULTS = {
     "publish_odom_tf": True,       # False: only map -> odom (robot odometry owns odom -> base)
     "path_max_length": 100000,
     "path_period": 0.5,            # /mdr/path at most this often (s): its size grows with the run
+    "path_min_translation": 0.05,  # a pose joins /mdr/path once the camera moved this far (m) ...
+    "path_min_rotation_deg": 5.0,  # ... or turned this much since the last one (0 and 0: every pose)
     "blas_threads": 1,             # BLAS threads of this process (0: library default)
     "calib": "",                   # calibration file(s) instead of camera_info
     "sync_queue_size": 10,
@@ -54,6 +56,7 @@ class PoseRelay:
         self.path.header.frame_id = p["map_frame"]
         self._path_sent = -1e9             # monotonic time of the last /mdr/path
         self._path_dirty = False
+        self._path_last = None             # T_map_cam of the last pose put on /mdr/path
         self._path_lock = threading.Lock()   # the timer thread publishes it too
         if float(p.get("path_period", 0)) > 0:   # the last poses of a burst go out too
             self._path_timer = rospy.Timer(rospy.Duration(float(p["path_period"])),
@@ -146,6 +149,21 @@ class PoseRelay:
             self._path_sent = now
             self.pub_path.publish(self.path)
 
+    def _path_step(self, T: np.ndarray) -> bool:
+        """True when ``T`` is far enough from the last pose of /mdr/path to join it: the message
+        is re-sent whole, so one pose per frame would make it grow with time (a standing robot)
+        instead of with the path (36 k poses after 30 min at 20 Hz, re-serialized every period)."""
+        last = self._path_last
+        if last is not None:
+            from ..geometry import rotation_angle
+            moved = float(np.linalg.norm(T[:3, 3] - last[:3, 3]))
+            turned = np.degrees(rotation_angle(last[:3, :3].T @ T[:3, :3]))
+            if moved < float(self.p.get("path_min_translation", 0.0)) and \
+                    turned < float(self.p.get("path_min_rotation_deg", 0.0)):
+                return False
+        self._path_last = T.copy()
+        return True
+
     def publish(self, stamp, T_map_cam: np.ndarray, T_map_odom: np.ndarray = None) -> None:
         from nav_msgs.msg import Odometry
         from ..conversions import matrix_to_pose, matrix_to_pose_stamped, matrix_to_transform_stamped
@@ -163,6 +181,7 @@ class PoseRelay:
             self.warn("back", "time went backwards (bag loop?); clearing the path")
             with self._path_lock:
                 del self.path.poses[:]
+            self._path_last = None
         if state == "duplicate":
             self.warn("dup", "duplicate pose stamp %.3f; skipped" % stamp.to_sec())
             return
@@ -177,13 +196,14 @@ class PoseRelay:
         odom.child_frame_id = p["base_frame"]
         odom.pose.pose = matrix_to_pose(T_odom_base)   # map -> odom is identity for the relay
         self.pub_odom.publish(odom)
-        with self._path_lock:
-            self.path.header.stamp = stamp
-            self.path.poses.append(ps)
-            if len(self.path.poses) > p["path_max_length"]:
-                del self.path.poses[: len(self.path.poses) - p["path_max_length"]]
-            self._path_dirty = True
-        self._flush_path(throttled=True)
+        if self._path_step(T_map_cam):
+            with self._path_lock:
+                self.path.header.stamp = stamp
+                self.path.poses.append(ps)
+                if len(self.path.poses) > p["path_max_length"]:
+                    del self.path.poses[: len(self.path.poses) - p["path_max_length"]]
+                self._path_dirty = True
+            self._flush_path(throttled=True)
         if self.tf is not None:
             tfs = [matrix_to_transform_stamped(T_map_odom, stamp, p["map_frame"], p["odom_frame"])]
             if p.get("publish_odom_tf", True):
