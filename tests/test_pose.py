@@ -722,3 +722,16 @@ def test_loop_drift_gate_rejects_implausible_corrections():
     far = make_T(np.eye(3), [6.0, 0.0, 0.0])
     assert not lc.plausible_correction(kf, cand, far)
     assert len(lc.rejected) == 2
+
+
+def test_config_pose_yaml_and_node_defaults_are_all_known():
+    """Every key of config/pose.yaml and of pose_node.DEFAULTS is either a tracker parameter or
+    a node-only key (System would refuse the file otherwise, and mdr run / the node with it)."""
+    import os
+    import yaml
+    from mdr_slam.nodes.pose_node import DEFAULTS
+    from mdr_slam.pose.system import DEFAULT_PARAMS, NODE_KEYS
+    cfg = os.path.join(os.path.dirname(__file__), "..", "src", "mdr_slam", "config", "pose.yaml")
+    keys = set(yaml.safe_load(open(cfg))) | set(DEFAULTS)
+    assert not keys - set(DEFAULT_PARAMS) - NODE_KEYS, keys - set(DEFAULT_PARAMS) - NODE_KEYS
+    System(CAM, params=yaml.safe_load(open(cfg)), threads=False).shutdown()
