@@ -735,3 +735,27 @@ def test_config_pose_yaml_and_node_defaults_are_all_known():
     keys = set(yaml.safe_load(open(cfg))) | set(DEFAULTS)
     assert not keys - set(DEFAULT_PARAMS) - NODE_KEYS, keys - set(DEFAULT_PARAMS) - NODE_KEYS
     System(CAM, params=yaml.safe_load(open(cfg)), threads=False).shutdown()
+
+
+def test_corrections_carry_culled_keyframes_along_their_ancestor(sequence):
+    """A culled keyframe (depth and fusion anchored data on it while it lived) is reported with
+    its ancestor's correction, at T_cp @ ancestor pose, so those points follow a loop closure."""
+    poses, images = sequence
+    s = System(CAM, threads=False)
+    for i in range(14):
+        s.track(0.05 * i, *images[i])
+    s._collect_corrections()   # drain what tracking produced
+    kfs = [k for k in s.map.good_keyframes() if k.id != 0 and k.parent is not None]
+    assert kfs
+    kf = kfs[-1]
+    parent = kf.parent
+    s.map.set_bad_keyframe(kf)
+    assert kf.bad and kf.T_cp is not None
+    dT = make_T(Rotation.from_euler("z", 5, degrees=True).as_matrix(), [0.1, 0.0, 0.0])
+    parent.T_cw = parent.T_cw @ dT          # as a loop correction moves the ancestor
+    s.loop_closing.corrections.append(("loop_closure", {parent.id: parent.T_cw.copy()}))
+    reason, _, out = s._collect_corrections()
+    assert reason == "loop_closure" and parent.id in out and kf.id in out
+    np.testing.assert_allclose(out[kf.id][1], inv_T(kf.T_cp @ parent.T_cw), atol=1e-9)
+    assert out[kf.id][0] == kf.stamp
+    s.shutdown()

@@ -245,6 +245,18 @@ class System:
                 kf = self.map.keyframes.get(k)
                 if kf is not None and not kf.bad:
                     out[k] = (kf.stamp, inv_T(kf.T_cw))
+            # culled keyframes follow their surviving ancestor (ORB-SLAM2 keeps T_cp for the
+            # trajectory): depth and fusion anchored data on them when they were alive, and
+            # without this those points stayed where the old pose put them (doubled walls after
+            # a loop closure)
+            for kf in self.map.keyframes.values():
+                if not kf.bad or kf.T_cp is None or kf.id in out:
+                    continue
+                T, a = kf.T_cp, kf.parent
+                while a is not None and a.bad and a.T_cp is not None:
+                    T, a = T @ a.T_cp, a.parent
+                if a is not None and a.id in out:
+                    out[kf.id] = (kf.stamp, inv_T(T @ a.T_cw))
         return (reason, self.correction_id, out)
 
     def keyframe_poses(self) -> Dict[int, Tuple[float, np.ndarray]]:
