@@ -96,37 +96,6 @@ def test_normal_angle_threshold_controls_merging():
             assert near_axis == 0
 
 
-def test_association_is_exact_up_to_one_voxel_radius():
-    """Stage 2 of the update finds every map point within ``radius`` (<= one voxel) in any of the
-    26 neighbour voxels, also on the far side of the point's voxel (the old 2x2x2 search only
-    looked towards the nearest borders, and missed these: the repeated room kept growing)."""
-    g = np.arange(0, 0.8, 0.04)
-    x, y = np.meshgrid(g, g)
-    x, y = x.ravel(), y.ravel()
-
-    def wall(dx, dy):  # one point per voxel at z = 2.01 (voxel 100, centre), normals -z
-        return np.column_stack([x + dx, y + dy, np.full(x.size, 2.01)])
-
-    A = wall(0.019, 0.019)  # map points at 95 % of voxels (2i, 2j), next to the +x/+y borders
-    for shift, expect in ((0.012, "merged"), (0.016, "inserted")):
-        m = VoxelMap(0.02, radius=0.02, grace=100.0, merge_duplicates=False)
-        m.integrate(A, np.eye(4), 0.0)
-        # the same wall shifted diagonally: each point lands at 55 % (80 %) of voxel (2i+1, 2j+1),
-        # its own voxel is empty and its map point lies in the diagonal neighbour (-1, -1, 0), on
-        # the far side, 0.012 * sqrt(2) = 17 mm away (within radius) or 23 mm (not)
-        B = wall(0.019 + shift, 0.019 + shift)
-        d = np.linalg.norm(B - A, axis=1)
-        assert np.all((d <= 0.02) == (expect == "merged"))
-        st = m.integrate(B, np.eye(4), 1.0)
-        if expect == "merged":
-            assert st.n_merged == len(B) and st.n_inserted == 0, st
-            assert len(m) == len(A)
-            np.testing.assert_allclose(np.sort(m.points()[:, 0]), np.sort(x + 0.025), atol=1e-5)
-        else:
-            assert st.n_merged == 0 and st.n_inserted == len(B), st
-            assert len(m) == 2 * len(A)
-
-
 def test_clean_removes_old_low_confidence_points_keeps_young_ones():
     rng = np.random.default_rng(4)
     m = VoxelMap(VOX, min_confidence=3, grace=1.0, clean_every=0)

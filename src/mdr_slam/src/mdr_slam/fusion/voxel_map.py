@@ -21,12 +21,12 @@ Fuse-update-clean (paper 3.4.2)
   moments (:func:`grid_normals`, no KD-tree; ``normal_method="knn"``: Open3D ``estimate_normals``).
 * update: each incoming point is associated with a map point: first its own voxel (in its normal
   bin and the second most likely bin, so normals near a bin boundary still find their point),
-  then, for points still unmatched, every neighbouring voxel of the 3x3x3 block whose box comes
-  within ``radius`` of the point (same two bins; all these queries in one batched hash find),
-  taking the nearest candidate within ``radius``: exact for any ``radius`` up to one voxel (about
-  20 of the 26 neighbours at ``radius = voxel``) for map points inside their key voxel (a running
-  mean can drift slightly out of it; a half-voxel margin and a third normal bin, tried on the
-  sample, caught those too but cost ~30 % more lookups and did not change the growth).
+  then, for points still unmatched, the neighbouring voxels on the side(s) where the point is
+  closer than ``radius`` to the voxel border (the 2x2x2 block around the point: at most 7 more
+  voxels; exact for ``radius <= voxel/2``, and for larger radii it still finds the map points of
+  the same surface, which lie near their voxel's centre plane), taking the nearest candidate
+  within ``radius`` (a search of every neighbour within ``radius``, exact up to one voxel,
+  cost 2.5x the hash lookups and slowed the live tracker without slowing the map's growth).
   A candidate only matches when the normals agree
   within ``normal_angle_deg``. Matched points are averaged into the map point (weighted running
   mean of position, normal and intensity) and its confidence (number of clouds that observed it)
@@ -90,8 +90,8 @@ _KEY_LIMIT = 2 ** 20
 _BLOCK27 = np.array(sorted([[ox, oy, oz] for ox in (-1, 0, 1) for oy in (-1, 0, 1) for oz in (-1, 0, 1)],
                            key=lambda o: sum(abs(x) for x in o)), np.int64)
 
-# the 26 neighbours of a voxel (the 3x3x3 block without the voxel itself)
-_NEIGHBOURS26 = _BLOCK27[1:]
+_OFFSETS = [np.array([ox, oy, oz]) for ox in (0, 1) for oy in (0, 1) for oz in (0, 1)
+            if ox + oy + oz > 0]
 # the 5x5x5 block around a voxel
 _BLOCK125 = np.array([[ox, oy, oz] for ox in range(-2, 3) for oy in range(-2, 3) for oz in range(-2, 3)], np.int64)
 
@@ -460,37 +460,36 @@ class VoxelMap:
                 good = s >= 0
                 good[good] = np.einsum("ij,ij->i", a["normal"][s[good]], Nd[good]) >= self.cos_normal
                 target[good] = s[good]
-            # stage 2: unmatched points look in every neighbour voxel (3x3x3 block) whose box
-            # comes within radius of the point; all queries go to the hash in one batch (a find
-            # call has a fixed overhead)
+            # stage 2: unmatched points near a voxel border look in the neighbours on that side;
+            # all queries go to the hash in one batch (a find call has a fixed overhead)
             um = np.nonzero(target < 0)[0]
             if len(um) and self.radius > 0:
                 frac = Pd[um] / self.voxel_size - vox[um]
-                # squared distance (voxel units) from the point to the neighbour voxel's box, per
-                # axis and offset -1/0/+1; summed over the axes for each of the 26 offsets
-                gap2 = np.stack([frac, np.zeros_like(frac), 1.0 - frac], axis=2) ** 2  # (n, 3, 3)
-                o = _NEIGHBOURS26 + 1
-                d2 = gap2[:, 0, o[:, 0]] + gap2[:, 1, o[:, 1]] + gap2[:, 2, o[:, 2]]  # (n, 26)
-                idx, oi = np.nonzero(d2 <= (self.radius / self.voxel_size) ** 2)
-                nv = vox[um[idx]] + _NEIGHBOURS26[oi]
-                qi = np.concatenate([idx, idx])
-                qk = np.concatenate([np.concatenate([nv, b1[um[idx], None]], axis=1),
-                                     np.concatenate([nv, b2[um[idx], None]], axis=1)])
-            else:
-                qi = []
-            if len(qi):
-                s = self._find(qk)
-                st["n_lookups"] += len(qi)
-                f = s >= 0
-                qi, s = qi[f], s[f]
-                d = np.linalg.norm(a["pos"][s] - Pd[um[qi]], axis=1)
-                agree = np.einsum("ij,ij->i", a["normal"][s], Nd[um[qi]]) >= self.cos_normal
-                ok2 = agree & (d <= self.radius)
-                qi, s, d = qi[ok2], s[ok2], d[ok2]
-                order = np.lexsort((d, qi))  # nearest candidate first for every point
-                qi, s = qi[order], s[order]
-                _, first = np.unique(qi, return_index=True)
-                target[um[qi[first]]] = s[first]
+                side = np.where(frac < 0.5, -1, 1)
+                near = np.minimum(frac, 1.0 - frac) * self.voxel_size < self.radius
+                qi, qk = [], []
+                for o in _OFFSETS:  # 7 neighbour offsets of the 2x2x2 block, not a loop over points
+                    idx = np.nonzero(np.all(near | (o == 0), axis=1))[0]
+                    if len(idx) == 0:
+                        continue
+                    nv = vox[um[idx]] + side[idx] * o
+                    for b in (b1, b2):
+                        qi.append(idx)
+                        qk.append(np.concatenate([nv, b[um[idx], None]], axis=1))
+                if qi:
+                    qi = np.concatenate(qi)
+                    s = self._find(np.concatenate(qk))
+                    st["n_lookups"] += len(qi)
+                    f = s >= 0
+                    qi, s = qi[f], s[f]
+                    d = np.linalg.norm(a["pos"][s] - Pd[um[qi]], axis=1)
+                    agree = np.einsum("ij,ij->i", a["normal"][s], Nd[um[qi]]) >= self.cos_normal
+                    ok2 = agree & (d <= self.radius)
+                    qi, s, d = qi[ok2], s[ok2], d[ok2]
+                    order = np.lexsort((d, qi))  # nearest candidate first for every point
+                    qi, s = qi[order], s[order]
+                    _, first = np.unique(qi, return_index=True)
+                    target[um[qi[first]]] = s[first]
             new_keys = k1
         else:
             new_keys = np.concatenate([vox, np.zeros((len(vox), 1), np.int64)], axis=1).astype(np.int32)
