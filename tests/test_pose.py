@@ -311,13 +311,19 @@ def test_ransac_se3_with_outliers():
     assert np.mean(mask[~out]) > 0.95 and np.mean(mask[out]) < 0.1
 
 
-def test_essential_graph_spreads_loop_error():
-    """A square of 4 m sides with a 0.4 m drift: the loop edge pulls the end onto the start."""
+def _square_loop():
+    """16 one-metre steps turning 90 degrees every 4: the relative steps and the true poses."""
     steps = [make_T(Rotation.from_euler("y", 0 if i % 4 else 90, degrees=True).as_matrix(),
                     [0, 0, 1.0]) for i in range(16)]
     true = [np.eye(4)]
     for s_ in steps:
         true.append(true[-1] @ s_)
+    return steps, true
+
+
+def test_essential_graph_spreads_loop_error():
+    """A square of 4 m sides with a 0.4 m drift: the loop edge pulls the end onto the start."""
+    steps, true = _square_loop()
     drift = make_T(Rotation.from_euler("y", 1.0, degrees=True).as_matrix(), [0.0, 0.0, 0.02])
     est = [np.eye(4)]
     for s_ in steps:
@@ -658,11 +664,7 @@ def test_pose_graph_weights_put_the_loop_error_on_weak_links():
     """Loop pose graph with edge information (#6): when the drift comes from one weak link
     (a stretch tracked on a few blank-wall corners), weighting edges by their shared points
     moves the correction there instead of bending the well-tracked rest of the loop."""
-    steps = [make_T(Rotation.from_euler("y", 0 if i % 4 else 90, degrees=True).as_matrix(),
-                    [0, 0, 1.0]) for i in range(16)]
-    true = [np.eye(4)]
-    for s_ in steps:
-        true.append(true[-1] @ s_)
+    steps, true = _square_loop()
     bad = make_T(Rotation.from_euler("y", 4.0, degrees=True).as_matrix(), [0.1, 0.0, 0.05])
     est = [np.eye(4)]
     for i, s_ in enumerate(steps):
