@@ -159,3 +159,47 @@ def test_depth_node_pose_from_tf_and_elas_only(rospy_client, start_process):
     np.testing.assert_allclose(np.median(a["z"]), 1.25, rtol=0.02)
     assert node.proc.poll() is None, node.output()
     sub.unregister()
+
+
+def test_stamp_rate_limiter_keeps_max_rate_by_stamp_and_restarts_on_loop():
+    from mdr_slam.nodes.common import StampRateLimiter
+    ts = 1000.0 + 0.05 * np.arange(200)            # 10 s of a 20 Hz stream
+    for rate, want in ((12.0, 120), (10.0, 100), (0.0, 200), (30.0, 200)):
+        lim = StampRateLimiter(rate)
+        kept = np.array([t for t in ts if not lim.skip(t)])
+        assert len(kept) == want, (rate, len(kept))
+        if 0 < rate < 20:                           # evenly spread: no gap over one period + 1 frame
+            assert np.diff(kept).max() <= 1.0 / rate + 0.05 + 1e-9
+    lim = StampRateLimiter(10.0)
+    assert [lim.skip(t) for t in (5.0, 5.05, 5.1)] == [False, True, False]
+    assert lim.skip(0.0) is False                   # the bag looped: time 0 is due at once
+    assert lim.skip(0.05) is True
+
+
+def test_depth_node_max_rate_and_a_pose_that_arrives_after_the_images(rospy_client, start_process):
+    """The filter stage waits for each matched pair's pose (the pose node is still tracking it)
+    while ELAS goes on; ``max_rate`` 10 on a 20 Hz stream keeps every second pair."""
+    rospy = rospy_client
+    from geometry_msgs.msg import PoseStamped
+    from sensor_msgs.msg import PointCloud2
+    prefix = "/dn3/"
+    node = start_process(_node_cmd("depth_test3", prefix, "_use_tf:=false", "_max_rate:=10",
+                                   "_pose_source_topic:=/dn3/pose", "_tf_timeout:=0.5"), "depth3")
+    got = []
+    sub = rospy.Subscriber("/mdr/depth/points", PointCloud2, got.append)
+    pose_pub = rospy.Publisher("/dn3/pose", PoseStamped, queue_size=10)
+    sp = StereoPublisher(rospy, prefix)
+    assert wait_for(lambda: sp.connected() and pose_pub.get_num_connections() > 0 and
+                    sub.get_num_connections() > 0, 30), node.output()
+    left, right = _pair()
+    base = rospy.Time.now()
+    stamps = [base + rospy.Duration(0.05 * i) for i in range(12)]
+    for st in stamps:
+        sp.publish(st, left, right)
+        rospy.sleep(0.08)                            # ELAS of this pair runs meanwhile
+        pose_pub.publish(cv.matrix_to_pose_stamped(np.eye(4), st, "map"))   # the pose comes late
+        rospy.sleep(0.15)
+    assert wait_for(lambda: len(got) >= 6, 10), node.output()
+    rospy.sleep(0.5)
+    assert [m.header.stamp for m in got] == stamps[::2], node.output()
+    sub.unregister()

@@ -12,19 +12,25 @@ Thin shell around :class:`mdr_slam.depth.StereoDepth`:
   x y z intensity variance n_obs), optionally ``/mdr/depth/image`` (32FC1, metres), and rate,
   latency and drops on ``/diagnostics``.
 
-The callbacks only store the newest pair; one worker thread computes, so a slow frame drops the
-pairs that arrived meanwhile (counted) instead of building a backlog of stale images.
+Two worker threads form a pipeline, so waiting for a frame's pose does not stall matching:
+``depth_elas`` takes the newest pair (the callbacks only store it, so a slow frame drops the pairs
+that arrived meanwhile, counted, instead of building a backlog of stale images) and runs ELAS,
+which needs no pose; ``depth_filter`` takes the matched pairs in stamp order, waits for each one's
+pose (the pose node is still tracking that frame) and runs the temporal filter and publishes.
+``~max_rate`` (Hz, 0 = every pair) skips pairs by their stamps before any work: the keyframe
+filter needs no more, and on a 2-core robot the tracker needs the CPU more.
 Bad input is logged (throttled, one line per kind) and skipped; the node never dies on input.
 """
 from __future__ import annotations
 
+import collections
 import threading
 import time
 from typing import Optional
 
 import numpy as np
 
-from .common import ClockWatch, StampGuard, Throttled, get_params
+from .common import ClockWatch, StampGuard, StampRateLimiter, Throttled, get_params
 from .health import update_diagnostics
 
 DEFAULTS = {
@@ -33,6 +39,7 @@ DEFAULTS = {
     "use_tf": True,                 # pose from tf2; False: from pose_source_topic
     "pose_source_topic": "/mdr/pose",
     "tf_timeout": 0.1,              # s to wait for tf / for the pose of an image stamp
+    "max_rate": 0.0,                # Hz of pairs processed (by stamp); 0 = every pair
     "pose_max_gap": 0.25,           # s between two cached poses to interpolate between them
     "keyframe_topic": "/mdr/keyframes",
     "use_keyframe_events": True,    # follow the pose node's keyframes once it publishes any
@@ -61,7 +68,13 @@ class DepthNode:
         self.camera_key = None
         self.fixed_camera = None
         self.depth_params = {k: p[k] for k in DEPTH_DEFAULTS}
-        self.counts = {"received": 0, "processed": 0, "dropped": 0, "skipped": 0, "published": 0}
+        self.counts = {"received": 0, "processed": 0, "dropped": 0, "skipped": 0, "published": 0,
+                       "throttled": 0}
+        self.matched = collections.deque()    # ELAS done, waiting for the filter (stamp order)
+        self.max_matched = 3                  # more: the filter stage is behind, drop the oldest
+        self.limiter = StampRateLimiter(p["max_rate"])
+        self.cpu_s = {"match": 0.0, "filter": 0.0}   # thread CPU of the two stages (diagnostics)
+        self.generation = 0                   # +1 per filter reset: queued pairs of before are stale
         self.last_latency = float("nan")
         self.last_timings = {}
         self.last_stats = {}
@@ -116,8 +129,11 @@ class DepthNode:
         # also without input (the worker updates after each frame): "no frame processed yet"
         self.diag_timer = rospy.Timer(rospy.Duration(max(0.1, p["diagnostic_period"])),
                                       lambda _e: update_diagnostics(self.updater), reset=True)
-        self.worker = threading.Thread(target=self._work, name="depth_worker", daemon=True)
+        self.worker = threading.Thread(target=self._work, name="depth_elas", daemon=True)
         self.worker.start()
+        self.filter_worker = threading.Thread(target=self._work_filter, name="depth_filter",
+                                              daemon=True)
+        self.filter_worker.start()
         rospy.loginfo("depth_node: %s, temporal=%s, pose from %s, listening on %s and %s",
                       "calib file" if self.fixed_camera is not None else "camera_info",
                       p["temporal"], "tf" if p["use_tf"] else p["pose_source_topic"],
@@ -161,6 +177,9 @@ class DepthNode:
     def on_images(self, left, right, linfo=None, rinfo=None):
         with self.cv:
             self.counts["received"] += 1
+            if self.limiter.skip(left.header.stamp.to_sec()):   # max_rate
+                self.counts["throttled"] += 1
+                return
             if self.pending is not None:
                 self.counts["dropped"] += 1   # the worker is busy: keep only the newest pair
             self.pending = (left, right, linfo, rinfo, time.monotonic())
@@ -195,8 +214,28 @@ class DepthNode:
                 except (ConversionError, ValueError) as e:
                     self.warn("kfpose", "depth_node: keyframe correction skipped: %s" % e)
 
-    # ------------------------------------------------------------------ worker
+    # ------------------------------------------------------------------ workers
+    def _work_filter(self):
+        """Stage 2: matched pairs in stamp order -> pose, temporal filter, publish."""
+        import rospy
+        while not rospy.is_shutdown():
+            with self.cv:
+                while not self.matched and not rospy.is_shutdown():
+                    self.cv.wait(0.2)
+                if not self.matched:
+                    continue
+                item = self.matched.popleft()
+            c0 = time.thread_time()
+            try:
+                self.filter_and_publish(*item)
+            except Exception as e:  # never die on input: log and go on with the next pair
+                self.counts["skipped"] += 1
+                self.warn("error", "depth_node: frame skipped after an error: %r" % (e,), "err")
+            self.cpu_s["filter"] += time.thread_time() - c0
+            update_diagnostics(self.updater)
+
     def _work(self):
+        """Stage 1: the newest pair -> checks, conversion, ELAS -> the filter stage's queue."""
         import rospy
         while not rospy.is_shutdown():
             with self.cv:
@@ -205,12 +244,13 @@ class DepthNode:
                 item, self.pending = self.pending, None
             if item is None:
                 continue
+            c0 = time.thread_time()
             try:
                 self.process(*item)
             except Exception as e:  # never die on input: log and go on with the next pair
                 self.counts["skipped"] += 1
                 self.warn("error", "depth_node: frame skipped after an error: %r" % (e,), "err")
-            update_diagnostics(self.updater)
+            self.cpu_s["match"] += time.thread_time() - c0
 
     def _pose_at(self, stamp, frame: str) -> Optional[np.ndarray]:
         import rospy
@@ -244,11 +284,9 @@ class DepthNode:
         return T
 
     def process(self, left, right, linfo, rinfo, t_recv):
-        import rospy
+        """Stage 1 of one pair: stamp checks, camera, conversion, ELAS; queued for stage 2."""
         from ..camera import CalibrationError
-        from ..conversions import (ConversionError, arrays_to_pointcloud2, image_to_mono8,
-                                   numpy_to_image)
-        from ..depth import render_depth
+        from ..conversions import ConversionError, image_to_mono8
         stamp = left.header.stamp
         t = stamp.to_sec()
         state = self.guard.check(t)
@@ -259,7 +297,10 @@ class DepthNode:
             return
         if jumped:
             self.warn("back", "depth_node: time went backwards to %.3f (bag loop?); filter reset" % t)
+            with self.cv:
+                self.matched.clear()
             with self.lock:
+                self.generation += 1
                 if self.depth is not None:
                     self.depth.reset()
                 self.kf_pending = []
@@ -284,19 +325,36 @@ class DepthNode:
             self.counts["skipped"] += 1
             return
         frame = self.p["camera_frame"] or left.header.frame_id or "camera_left_optical_frame"
-        # ELAS first: it needs no pose, and the pose node is still tracking this frame (waiting
-        # for the pose before matching made each frame cost tracking + ELAS in wall time)
+        # ELAS here, without the pose: the pose node is still tracking this frame, and the filter
+        # stage waits for its pose while this stage matches the next pair
         try:
             meas = self.depth.measure(L, R)
         except ValueError as e:
             self.warn("depth", "depth_node: input skipped: %s" % e)
             self.counts["skipped"] += 1
             return
+        with self.cv:
+            if len(self.matched) >= self.max_matched:
+                self.matched.popleft()
+                self.counts["dropped"] += 1
+            self.matched.append((left.header, frame, meas, self.depth, self.generation))
+            self.cv.notify_all()
+
+    def filter_and_publish(self, header, frame, meas, depth, generation):
+        """Stage 2 of one pair: its pose (waiting for the pose node), the filter, publishing."""
+        import rospy
+        from ..conversions import arrays_to_pointcloud2, numpy_to_image
+        from ..depth import render_depth
+        stamp = header.stamp
+        t = stamp.to_sec()
         T = self._pose_at(stamp, frame)
         if T is None:
             self.counts["skipped"] += 1
             return
         with self.lock:
+            if depth is not self.depth or generation != self.generation:   # since replaced/reset
+                self.counts["skipped"] += 1
+                return
             new_kf, kf_id = None, None
             if self.kf_events_seen:
                 new_kf = False
@@ -305,20 +363,20 @@ class DepthNode:
                     new_kf, kf_id = True, due[-1][1]
                     self.kf_pending = [k for k in self.kf_pending if k[0] > t + 1e-4]
             try:
-                out = self.depth.update(t, meas, T, new_keyframe=new_kf, keyframe_id=kf_id)
+                out = depth.update(t, meas, T, new_keyframe=new_kf, keyframe_id=kf_id)
             except ValueError as e:
                 self.warn("depth", "depth_node: input skipped: %s" % e)
                 self.counts["skipped"] += 1
                 return
         self.counts["processed"] += 1
-        frame_id = left.header.frame_id or frame
+        frame_id = header.frame_id or frame
         msg = arrays_to_pointcloud2({"intensity": out.intensity, "variance": out.variance,
                                      "n_obs": out.n_obs.astype(np.uint32)},
                                     stamp=stamp, frame_id=frame_id, xyz=out.points)
         self.pub_points.publish(msg)
         self.counts["published"] += 1
         if self.pub_image is not None:
-            img = render_depth(out.points, self.depth.camera)
+            img = render_depth(out.points, depth.camera)
             self.pub_image.publish(numpy_to_image(img, "32FC1", stamp=stamp, frame_id=frame_id))
         self.last_points = len(out)
         self.last_timings = out.timings
@@ -343,6 +401,9 @@ class DepthNode:
         stat.add("points_last_frame", str(self.last_points))
         for k, v in self.last_timings.items():
             stat.add("ms_" + k, "%.1f" % v)
+        for k, v in self.cpu_s.items():   # per published cloud: the rest of the process CPU is
+            stat.add("cpu_ms_%s_per_cloud" % k,   # receiving images and ROS itself
+                     "%.1f" % (1e3 * v / max(1, c["published"])))
         stat.add("drops", str(c["dropped"] + c["skipped"]))   # pairs received but not published
         self.health.add_to(stat)
         return stat
