@@ -230,7 +230,14 @@ def main(argv=None):
     ap.add_argument("--only-threads", action="store_true", help="only the threaded mode")
     ap.add_argument("--blas-threads", type=int, default=1,
                     help="BLAS threads, as pose_node's blas_threads (0: the library's default)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="pose parameter override for the bag runs (repeatable), e.g. yield_max_ms=0")
     args = ap.parse_args(argv)
+    import yaml
+    overrides = {}
+    for kv in args.set:
+        k, _, v = kv.partition("=")
+        overrides[k.strip()] = yaml.safe_load(v)
     if args.blas_threads > 0:
         from threadpoolctl import threadpool_limits
         threadpool_limits(limits=args.blas_threads, user_api="blas")
@@ -243,8 +250,8 @@ def main(argv=None):
     if not args.no_kitti and os.path.isdir(args.kitti):
         report("KITTI 06 clip", *kitti(args.kitti), args.runs, {"max_frames": 10}, args.drop)
     if args.bag:
-        report(os.path.basename(args.bag), *bag_frames(args.bag, args.bag_frames), args.runs, None,
-               args.drop)
+        report(os.path.basename(args.bag), *bag_frames(args.bag, args.bag_frames), args.runs,
+               overrides or None, args.drop)
     if args.loop:
         report_loop(*loop_scene())
     return 0
