@@ -204,6 +204,7 @@ def test_bench_live_measures_the_running_nodes(small_sim, tmp_path):
     assert b["frames_tracked"] > 100 and b["frames_in"] > 20, b
     # live ATE of /mdr/pose against the bag's ground truth: the relayed ground truth itself
     assert b["live_ate"]["n"] > 100 and b["live_ate"]["rmse_m"] < 0.005, b["live_ate"]
+    assert len(open(os.path.join(out, "live_trajectory.tum")).read().splitlines()) >= b["live_ate"]["n"]
     for n in ("pose_node", "depth_node", "fusion_node", "total"):
         assert b["rss_mb"][n]["max"] > 30, (n, b["rss_mb"])
     assert b["rss_mb"]["total"]["max"] >= b["rss_mb"]["fusion_node"]["max"]

@@ -59,12 +59,18 @@ def _node_processes(launch_pid: int) -> Dict[str, "object"]:
     return out
 
 
-def _live_ate(bag: str, poses) -> Optional[dict]:
+def _live_ate(bag: str, poses, out_dir: Optional[str] = None) -> Optional[dict]:
     """ATE of the pose node's poses as it published them (before later BA and loop corrections
-    of the past) against the bag's ground-truth topic; None when the bag has none."""
+    of the past) against the bag's ground-truth topic; None when the bag has none. The poses are
+    written to ``out_dir/live_trajectory.tum`` (TUM format) when given."""
     from ..bagio import read_ground_truth
     from ..eval.trajectory import ate
     from ..io import Trajectory
+    from ..io.trajectory import write_tum
+    if out_dir and len(poses) > 0:
+        srt = sorted(poses, key=lambda p: p[0])
+        write_tum(os.path.join(out_dir, "live_trajectory.tum"), Trajectory.from_matrices(
+            np.array([p[0] for p in srt]), np.array([p[1] for p in srt])))
     try:
         gt = read_ground_truth(bag)
     except Exception:
@@ -417,7 +423,7 @@ def _summarize(args, bag, lst: "_Listener", samples, elapsed, pose_source) -> di
     r["tracking_ms"] = {k: (None if v is None else round(v, 1))
                         for k, v in _stats(lst.tracking_ms).items()}
     r["pose_hz"] = round(_rate(lst.t_pose), 2)
-    r["live_ate"] = _live_ate(bag, lst.poses)   # groundtruth relay: ~0 (a check of the chain)
+    r["live_ate"] = _live_ate(bag, lst.poses, args.out)   # groundtruth relay: ~0 (a check of the chain)
     r["depth_hz"] = round(_rate(lst.t_depth), 2)
     r["map_integration_hz"] = round(_integration_rate(lst.integrated), 2)
     r["clouds_integrated"] = int(integrated) if integrated is not None else None
