@@ -203,3 +203,46 @@ def test_depth_node_max_rate_and_a_pose_that_arrives_after_the_images(rospy_clie
     rospy.sleep(0.5)
     assert [m.header.stamp for m in got] == stamps[::2], node.output()
     sub.unregister()
+
+
+def test_depth_node_pauses_while_the_tracker_is_lost(rospy_client, start_process):
+    """Pairs stamped while the pose node reports LOST get no pose: they are not matched at all
+    (counted as paused_lost); the first OK report resumes matching."""
+    rospy = rospy_client
+    from geometry_msgs.msg import PoseStamped
+    from mdr_slam_msgs.msg import TrackingState
+    from sensor_msgs.msg import PointCloud2
+    prefix = "/dn4/"
+    node = start_process(_node_cmd("depth_test4", prefix, "_use_tf:=false",
+                                   "_pose_source_topic:=/dn4/pose",
+                                   "_tracking_state_topic:=/dn4/state"), "depth4")
+    got = []
+    sub = rospy.Subscriber("/mdr/depth/points", PointCloud2, got.append)
+    pose_pub = rospy.Publisher("/dn4/pose", PoseStamped, queue_size=10)
+    state_pub = rospy.Publisher("/dn4/state", TrackingState, queue_size=10)
+    sp = StereoPublisher(rospy, prefix)
+    assert wait_for(lambda: sp.connected() and pose_pub.get_num_connections() > 0 and
+                    state_pub.get_num_connections() > 0 and sub.get_num_connections() > 0, 30)
+    left, right = _pair()
+    base = rospy.Time.now()
+
+    def frame(i, state):
+        st = base + rospy.Duration(0.1 * i)
+        msg = TrackingState(state=state)
+        msg.header.stamp = st
+        state_pub.publish(msg)
+        pose_pub.publish(cv.matrix_to_pose_stamped(np.eye(4), st, "map"))  # tf could interpolate
+        rospy.sleep(0.1)
+        sp.publish(st, left, right)
+        rospy.sleep(0.3)
+        return st
+
+    ok1 = frame(0, TrackingState.OK)
+    assert wait_for(lambda: len(got) >= 1, 10), node.output()
+    for i in (1, 2, 3):
+        frame(i, TrackingState.LOST)
+    ok2 = frame(4, TrackingState.OK)
+    assert wait_for(lambda: len(got) >= 2, 10), node.output()
+    rospy.sleep(0.5)
+    assert [m.header.stamp for m in got] == [ok1, ok2], node.output()
+    sub.unregister()

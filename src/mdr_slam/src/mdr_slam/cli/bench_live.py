@@ -438,6 +438,7 @@ def _summarize(args, bag, lst: "_Listener", samples, elapsed, pose_source) -> di
     samples = [s for s in samples if t0 <= s["t"] <= t1 + 1.0] or samples
     r["depth_dropped"] = fdiag("depth", "dropped")
     r["depth_throttled"] = fdiag("depth", "throttled")   # skipped by max_rate, before any work
+    r["depth_paused_lost"] = fdiag("depth", "paused_lost")   # skipped while tracking was LOST
     r["depth_cpu_ms_per_cloud"] = {k: fdiag("depth", "cpu_ms_%s_per_cloud" % k)
                                    for k in ("match", "filter")}
     r["pose_dropped_busy"] = fdiag("pose", "frames_dropped_busy")   # newest pair kept

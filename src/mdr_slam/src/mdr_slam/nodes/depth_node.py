@@ -18,7 +18,9 @@ that arrived meanwhile, counted, instead of building a backlog of stale images) 
 which needs no pose; ``depth_filter`` takes the matched pairs in stamp order, waits for each one's
 pose (the pose node is still tracking that frame) and runs the temporal filter and publishes.
 ``~max_rate`` (Hz, 0 = every pair) skips pairs by their stamps before any work: the keyframe
-filter needs no more, and on a 2-core robot the tracker needs the CPU more.
+filter needs no more, and on a 2-core robot the tracker needs the CPU more. While the pose node
+reports LOST (``~tracking_state_topic``), pairs are skipped too: they would get no pose, and the
+CPU is better spent on relocalization.
 Bad input is logged (throttled, one line per kind) and skipped; the node never dies on input.
 """
 from __future__ import annotations
@@ -40,6 +42,7 @@ DEFAULTS = {
     "pose_source_topic": "/mdr/pose",
     "tf_timeout": 0.1,              # s to wait for tf / for the pose of an image stamp
     "max_rate": 0.0,                # Hz of pairs processed (by stamp); 0 = every pair
+    "tracking_state_topic": "/mdr/tracking_state",   # skip pairs while LOST ("" = never)
     "pose_max_gap": 0.25,           # s between two cached poses to interpolate between them
     "keyframe_topic": "/mdr/keyframes",
     "use_keyframe_events": True,    # follow the pose node's keyframes once it publishes any
@@ -69,7 +72,8 @@ class DepthNode:
         self.fixed_camera = None
         self.depth_params = {k: p[k] for k in DEPTH_DEFAULTS}
         self.counts = {"received": 0, "processed": 0, "dropped": 0, "skipped": 0, "published": 0,
-                       "throttled": 0}
+                       "throttled": 0, "paused_lost": 0}
+        self.lost_at = None                   # stamp of the pose node's last LOST report
         self.matched = collections.deque()    # ELAS done, waiting for the filter (stamp order)
         self.max_matched = 3                  # more: the filter stage is behind, drop the oldest
         self.limiter = StampRateLimiter(p["max_rate"])
@@ -111,6 +115,13 @@ class DepthNode:
             from geometry_msgs.msg import PoseStamped
             self.sub_pose = rospy.Subscriber(p["pose_source_topic"], PoseStamped, self.on_pose,
                                              queue_size=100)
+        if p["tracking_state_topic"]:
+            try:
+                from mdr_slam_msgs.msg import TrackingState
+                self.sub_state = rospy.Subscriber(p["tracking_state_topic"], TrackingState,
+                                                  self.on_state, queue_size=20)
+            except ImportError as e:
+                rospy.logwarn("depth_node: mdr_slam_msgs unavailable (%s); not pausing when LOST", e)
         if p["use_keyframe_events"]:
             try:
                 from mdr_slam_msgs.msg import KeyFrameArray
@@ -177,13 +188,23 @@ class DepthNode:
     def on_images(self, left, right, linfo=None, rinfo=None):
         with self.cv:
             self.counts["received"] += 1
-            if self.limiter.skip(left.header.stamp.to_sec()):   # max_rate
+            t = left.header.stamp.to_sec()
+            if self.lost_at is not None and abs(t - self.lost_at) < 1.0:
+                self.counts["paused_lost"] += 1   # no pose will come for it
+                return
+            if self.limiter.skip(t):   # max_rate
                 self.counts["throttled"] += 1
                 return
             if self.pending is not None:
                 self.counts["dropped"] += 1   # the worker is busy: keep only the newest pair
             self.pending = (left, right, linfo, rinfo, time.monotonic())
             self.cv.notify()
+
+    def on_state(self, msg):
+        """The tracker's state per frame: LOST / NOT_INITIALIZED pause matching (see on_images)."""
+        lost = msg.state in (msg.LOST, msg.NOT_INITIALIZED)
+        with self.cv:
+            self.lost_at = msg.header.stamp.to_sec() if lost else None
 
     def on_pose(self, msg):
         from ..conversions import ConversionError, pose_stamped_to_matrix
