@@ -124,6 +124,8 @@ def main():
             lap1_end = float(d["stamps"][src].max()) + (0.0 if args.wrap else 0.0)
     print("integration over all laps: median %.1f ms, p90 %.1f ms (wall)" % (
         np.median(ms_all), np.percentile(ms_all, 90)))
+    print("points re-keyed (mean left its voxel): %d, folded into their new voxel's point: %d" % (
+        getattr(m, "n_rekeyed", 0), getattr(m, "n_cell_folds", 0)))
     # what are the points that came after lap 1?
     c = m.to_cloud(0)
     P = np.stack([c["x"], c["y"], c["z"]], 1)

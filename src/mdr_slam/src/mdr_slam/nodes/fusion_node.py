@@ -57,6 +57,8 @@ DEFAULTS = {
     "merge_duplicates": True,       # fold a surface's stray samples along its normal (#8)
     "dup_normal": 0.0,              # m, along the normal; 0 = 1.5 voxels
     "dup_lateral": 0.0,             # m, across the normal; 0 = 1 voxel
+    "dup_radius": 0.0,              # m, or closer than this in any direction; 0 = half a voxel
+    "rekey": True,                  # keys follow the running means: one point per voxel and bin
     "confidence": True,             # false: plain voxel grid (ablation)
     "min_confidence": 3,
     "grace": 5.0,
