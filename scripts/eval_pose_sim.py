@@ -115,11 +115,13 @@ def track(bag: str, params: dict) -> dict:
         gba = [{k: v for k, v in g.items() if k != "moved"}
                for g in (getattr(lc, "global_ba_runs", []) if lc is not None else [])]
         loops = [list(x) for x in lc.loops] if lc is not None else []
+        prox = [list(x) for x in getattr(lc, "proximity_loops", [])] if lc is not None else []
         n_kfs = len(system.map.good_keyframes())
     finally:
         system.shutdown()
     return {"stamps": np.array(stamps), "states": states, "traj": traj, "loops": n_loops,
-            "keyframes": n_kfs, "ms": np.array(ms), "global_ba": gba, "loop_pairs": loops}
+            "keyframes": n_kfs, "ms": np.array(ms), "global_ba": gba, "loop_pairs": loops,
+            "proximity_loops": prox}
 
 
 def evaluate(name: str, out: str, rate: float, scale: float, compare: bool,
@@ -178,6 +180,8 @@ def evaluate(name: str, out: str, rate: float, scale: float, compare: bool,
             "anchored_rot_rmse_deg": drift[2], "anchored_rot_max_deg": drift[3],
             "loop_closures": r["loops"], "keyframes": r["keyframes"],
             "loop_keyframe_pairs": r["loop_pairs"], "global_ba": r["global_ba"],
+            # loops found by the proximity path (current kf, matched kf, PnP inliers)
+            "proximity_loops": r["proximity_loops"],
             "segments": seg, "wall_s": wall,
             "track_ms_median": float(np.median(r["ms"])),
             "track_ms_p90": float(np.percentile(r["ms"], 90)),

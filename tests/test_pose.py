@@ -726,6 +726,102 @@ def test_loop_drift_gate_rejects_implausible_corrections():
     assert len(lc.rejected) == 2
 
 
+@pytest.fixture(scope="module")
+def orbit_loop(room):
+    """64 frames on a 1 m circle, 1.1 turns (the last ~6 frames revisit the first views)."""
+    poses = orbit_trajectory(64, radius=1.0, arc=6.9)
+    return poses, [room.render_stereo(T, CAM) for T in poses]
+
+
+def _loop_run(images, **params):
+    # loop_consistency 99: the BoW path never accepts a candidate (stands in for a place whose
+    # descriptors do not recur, #6 office loop seed 1)
+    s = System(CAM, params=dict({"loop_consistency": 99}, **params), threads=False)
+    for i, (l, r) in enumerate(images):
+        s.track(0.1 * i, l, r)
+    s.shutdown()
+    return s
+
+
+@pytest.fixture(scope="module")
+def orbit_proximity_run(orbit_loop):
+    return _loop_run(orbit_loop[1])
+
+
+def test_proximity_loop_closes_a_loop_the_bow_misses(orbit_loop, orbit_proximity_run):
+    """#6: old keyframes whose estimated pose is near the current one are verified by LK tracks
+    + PnP and closed although the BoW path accepts nothing; without the proximity path the same
+    run closes no loop."""
+    poses, images = orbit_loop
+    s = orbit_proximity_run
+    lc = s.loop_closing
+    assert lc.proximity_loops and len(lc.loops) == len(lc.proximity_loops), lc.loops
+    assert s.map.n_loop_closures >= 1
+    k, c, n = lc.proximity_loops[0]
+    assert n >= 40, n
+    # the loop is a true revisit: close in ground truth, and the current keyframe went round
+    ia, ib = (int(round(s.map.keyframes[x].stamp / 0.1)) for x in (k, c))
+    assert ia - ib > 50, (ia, ib)
+    D = inv_T(poses[ib]) @ poses[ia]
+    assert np.linalg.norm(D[:3, 3]) < 0.4
+    assert Rotation.from_matrix(D[:3, :3]).magnitude() < np.radians(20)
+    off = _loop_run(images, loop_proximity=False)
+    assert off.loop_closing.loops == [] and off.loop_closing.proximity_tries == 0
+
+
+def test_proximity_refuses_a_false_candidate(orbit_proximity_run):
+    """The LK + PnP check refuses a candidate whose image shows another place, and a keyframe
+    whose estimated pose is beyond the proximity radius is no candidate."""
+    s = orbit_proximity_run
+    lc, mp = s.loop_closing, s.map
+    k, c, _ = lc.proximity_loops[0]
+    kf, cand = mp.keyframes[k], mp.keyframes[c]
+    lc._exclude = {kf.id}
+    found = {x[1]: x for x in lc.proximity_candidates(kf)}
+    assert c in found, found
+    assert lc.verify_proximity(kf, cand, found[c][2]) is not None
+    # another place: the image of the keyframe that looks at the opposite wall
+    far = max((x for x in mp.good_keyframes() if x.id < k),
+              key=lambda x: np.linalg.norm(x.T_wc[:3, 2] - kf.T_wc[:3, 2]))
+    assert far.T_wc[:3, 2] @ kf.T_wc[:3, 2] < 0.0
+    saved = lc.images[c]
+    try:
+        lc.images[c] = lc.images[far.id]
+        assert lc.verify_proximity(kf, cand, found[c][2]) is None
+        assert lc.verify_proximity(kf, cand) is None
+    finally:
+        lc.images[c] = saved
+    # an estimate 3 m away (beyond loop_proximity_max_radius): not a candidate
+    T0 = cand.T_cw.copy()
+    try:
+        cand.set_pose(T0 @ inv_T(make_T(np.eye(3), [3.0, 0.0, 0.0])))
+        assert c not in {x[1] for x in lc.proximity_candidates(kf)}
+    finally:
+        cand.set_pose(T0)
+
+
+def test_weak_proximity_verifications_need_consistent_corrections():
+    """#6: a proximity verification with few inliers (blank wall) counts only when the loop
+    corrections of the previous keyframes' weak verifications agree with it."""
+    from types import SimpleNamespace
+    from mdr_slam.pose.loop_closing import LoopClosing
+    lc = LoopClosing.__new__(LoopClosing)
+    lc.p, lc._weak = {"loop_proximity_weak_consistency": 2}, []
+    S = make_T(Rotation.from_euler("y", 20.0, degrees=True).as_matrix(), [0.8, 0.0, -0.3])
+    kfs = [SimpleNamespace(id=i, T_wc=make_T(np.eye(3), [0.1 * i, 0.0, 0.0])) for i in range(6)]
+    assert not lc._weak_consistent(kfs[0], S)
+    assert not lc._weak_consistent(kfs[1], S)          # one agreeing predecessor: not yet
+    assert lc._weak_consistent(kfs[2], S @ make_T(np.eye(3), [0.02, 0.0, 0.0]))
+    # a correction 0.3 m / 8 deg off the others is refused
+    off = make_T(Rotation.from_euler("y", 8.0, degrees=True).as_matrix(), [0.3, 0.0, 0.0]) @ S
+    lc._weak = []
+    assert not lc._weak_consistent(kfs[0], S)
+    assert not lc._weak_consistent(kfs[1], off)
+    assert not lc._weak_consistent(kfs[2], S)          # only one of the two agrees
+    lc._weak = [(0, S), (1, S)]   # agreeing, but too old (more than 4 x 2 keyframes back)
+    assert not lc._weak_consistent(SimpleNamespace(id=30, T_wc=np.eye(4)), S)
+
+
 def test_config_pose_yaml_and_node_defaults_are_all_known():
     """Every key of config/pose.yaml and of pose_node.DEFAULTS is either a tracker parameter or
     a node-only key (System would refuse the file otherwise, and mdr run / the node with it)."""

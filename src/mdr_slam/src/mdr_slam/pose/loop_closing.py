@@ -17,6 +17,15 @@ optimizer.global_bundle_adjustment) refines the result by the observations thems
 corrections are reported as ``loop_closure`` too. A verified loop whose correction is larger than
 any plausible drift (``loop_max_drift`` x the keyframe path since the match, or
 ``loop_max_rotation_deg``) is refused: repeated bays passed the geometric check.
+
+Proximity loops (``loop_proximity``, ORB-SLAM3/RTAB-Map style), tried when the BoW path closes
+nothing: old keyframes whose estimated pose is near the current one (radius growing with the
+path since, as the drift gate), ranked by phase correlation of kept low-resolution images and
+verified without descriptors (Lucas-Kanade tracks of the stereo keypoints + PnP RANSAC), then
+the same drift gate. Where BoW and descriptors fail: on blank walls ORB corners are sensor
+noise (office loop seed 1: in the first keyframe 301 of 704 keypoints have a twin descriptor
+< 30 bits elsewhere in the image, so the ratio test keeps 22-57 matches of ~720 keypoints at the
+revisit, even 0.1 m / 5 deg from the old view, and the old keyframes keep only 25-75 map points).
 """
 from __future__ import annotations
 
@@ -95,6 +104,11 @@ class LoopClosing:
         self.loops: List[tuple] = []               # accepted (current kf id, loop kf id)
         self.global_ba_runs: List[dict] = []       # global_bundle_adjustment summaries (+ ms)
         self.rejected: List[tuple] = []            # (kf, cand, moved m, turned deg, path m)
+        self.images: Dict[int, tuple] = {}         # kf id -> (half, quarter) left image (proximity)
+        self.proximity_loops: List[tuple] = []     # accepted by the proximity path (kf, cand, inliers)
+        self.proximity_tries = 0                   # proximity verifications run (LK + PnP)
+        self._exclude: set = set()
+        self._weak: List[tuple] = []               # (kf id, S) of weak proximity verifications
 
     # ------------------------------------------------------------------ queue / thread
     def insert_keyframe(self, kf) -> None:
@@ -144,6 +158,15 @@ class LoopClosing:
                     if k in self.map.keyframes and not self.map.keyframes[k].bad]
 
     # ------------------------------------------------------------------ per keyframe
+    def keep_image(self, kf_id: int, image: np.ndarray) -> None:
+        """Keep a keyframe's left image at half and quarter resolution (90 + 22 kB at 752x480)
+        for the proximity loop path (``loop_proximity``); called by System after tracking."""
+        if not self.p.get("loop_proximity", True) or image is None or image.ndim != 2:
+            return
+        import cv2
+        half = cv2.pyrDown(image)
+        self.images[int(kf_id)] = (half, cv2.pyrDown(half))
+
     def process(self, kf) -> None:
         closed = False
         self.system.yield_to_tracking()
@@ -151,10 +174,17 @@ class LoopClosing:
         with self.map.lock:
             if kf.bad:
                 return
+            self._exclude = set()
             cand = self.detect_loop(kf, bow)
             if cand is not None:
                 closed = self.try_close(kf, cand)
+            if not closed and self._exclude and self.p.get("loop_proximity", True):
+                closed = self.try_proximity(kf)
             self.db.add(kf.id, bow)
+            if kf.id % 20 == 0:   # images of culled keyframes are no longer candidates
+                for k in [k for k in list(self.images) if k not in self.map.keyframes or
+                          self.map.keyframes[k].bad]:   # list(): tracking adds meanwhile
+                    self.images.pop(k, None)
         if closed and self.p.get("global_ba", True):
             self.run_global_ba()
 
@@ -205,6 +235,7 @@ class LoopClosing:
         exclude = near | {kf.id} | {k for k in self.db.bows if k > kf.id - 5} | \
             {k for k in self.db.bows if k in mp.keyframes and
              kf.stamp - mp.keyframes[k].stamp < min_age}
+        self._exclude = exclude
         cands = [k for k, s in self.db.query(bow, exclude=exclude, min_score=min_score, top=5)]
         # consistency: a candidate's group (it + its connections) must overlap a group that was
         # detected for the previous keyframes, min_consistency times in a row
@@ -236,6 +267,151 @@ class LoopClosing:
             if not self.plausible_correction(kf, cand, S):
                 continue
             self.correct_loop(kf, cand, S, cur_ids, loop_ids, new_kp, new_ids)
+            self.consistent_groups = []
+            return True
+        return False
+
+    # ------------------------------------------------------------------ proximity loops
+    def proximity_candidates(self, kf) -> List[tuple]:
+        """Old keyframes whose ESTIMATED pose is near the current one (ORB-SLAM3/RTAB-Map style
+        proximity detection, for places the BoW misses: office loop seed 1 returns to a blank
+        wall whose corners are sensor noise, so old and new keyframes share almost no ORB
+        descriptor although the views are the same). Not covisible, not recent (the BoW path's
+        exclusion set), at least ``loop_proximity_min_path`` of keyframe path ago (a stop-and-sweep
+        revisits its own views: no drift to correct there), within ``loop_proximity_radius`` +
+        ``loop_max_drift`` x that path (at most ``loop_proximity_max_radius``) and
+        ``loop_proximity_angle_deg`` of optical axis; ranked by the phase-correlation response
+        of the quarter images (cv2.phaseCorrelate; its shift starts the LK search; responses
+        below ``loop_proximity_min_response`` are dropped). Returns [(response, kf id, (dx, dy)
+        full-image shift)] best first, at most ``loop_proximity_candidates``."""
+        import cv2
+        mp = self.map
+        if kf.id not in self.images:
+            return []
+        ids = sorted(k.id for k in mp.good_keyframes() if k.id <= kf.id)
+        P = np.array([mp.keyframes[k].T_wc[:3, 3] for k in ids])
+        cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
+        pos = dict(zip(ids, range(len(ids))))
+        old = np.array([k for k in ids if k not in self._exclude and k in self.images], np.int64)
+        if len(old) == 0:
+            return []
+        T = kf.T_wc
+        Po = P[[pos[k] for k in old]]
+        Zo = np.array([mp.keyframes[k].T_wc[:3, 2] for k in old])
+        dist = np.linalg.norm(Po - T[:3, 3], axis=1)
+        ang = np.degrees(np.arccos(np.clip(Zo @ T[:3, 2], -1.0, 1.0)))
+        path = cum[pos[kf.id]] - cum[[pos[k] for k in old]]
+        radius = np.minimum(float(self.p.get("loop_proximity_radius", 0.5)) +
+                            float(self.p.get("loop_max_drift", 0.3)) * path,
+                            float(self.p.get("loop_proximity_max_radius", 2.0)))
+        ok = (dist <= radius) & (ang <= float(self.p.get("loop_proximity_angle_deg", 45.0))) & \
+            (path >= float(self.p.get("loop_proximity_min_path", 2.0)))
+        sel = old[ok][np.argsort(dist[ok])][:60]   # bounded cost: ~0.3 ms per response
+        q = self.images[kf.id][1].astype(np.float32)
+        win = cv2.createHanningWindow(q.shape[::-1], cv2.CV_32F)
+        out = []
+        for k in sel.tolist():
+            (dx, dy), r = cv2.phaseCorrelate(q, self.images[k][1].astype(np.float32), win)
+            out.append((float(r), int(k), (2.0 * dx, 2.0 * dy)))
+        th = float(self.p.get("loop_proximity_min_response", 0.3))
+        out = sorted([o for o in out if o[0] >= th], key=lambda o: -o[0])
+        return out[: int(self.p.get("loop_proximity_candidates", 2))]
+
+    def verify_proximity(self, kf, cand, shift=(0.0, 0.0)):
+        """Appearance-free geometric verification of a proximity candidate: kf's stereo keypoints
+        are followed into cand's image by pyramidal Lucas-Kanade (half resolution, started at
+        the phase-correlation shift, forward-backward checked to 0.5 px), and cand's pose
+        relative to kf comes from PnP RANSAC on their stereo 3-D points (2 px). Returns
+        (S, inliers, kf keypoint index, cand image position) of the inliers, or None."""
+        import cv2
+        if kf.id not in self.images or cand.id not in self.images:
+            return None
+        self.proximity_tries += 1
+        a, b = self.images[kf.id][0], self.images[cand.id][0]
+        sel = np.nonzero(kf.depth > 0)[0]
+        min_inl = int(self.p.get("loop_proximity_min_inliers", 40))
+        weak = int(self.p.get("loop_proximity_weak_inliers", 0))
+        if weak > 0:
+            min_inl = min(min_inl, weak)
+        if len(sel) < min_inl:
+            return None
+        p0 = (kf.uv[sel] * 0.5).astype(np.float32)
+        p1 = p0 + np.float32([shift[0] * 0.5, shift[1] * 0.5])
+        lk = dict(winSize=(21, 21), maxLevel=3)
+        p1, st, _ = cv2.calcOpticalFlowPyrLK(a, b, p0, p1.astype(np.float32),
+                                             flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
+        pb, st2, _ = cv2.calcOpticalFlowPyrLK(b, a, p1, None, **lk)
+        ok = (st[:, 0] == 1) & (st2[:, 0] == 1) & (np.linalg.norm(pb - p0, axis=1) < 0.5)
+        if np.count_nonzero(ok) < min_inl:
+            return None
+        sel, uv = sel[ok], p1[ok].astype(np.float64) * 2.0
+        z = kf.depth[sel].astype(np.float64)
+        X = np.stack([(kf.uv[sel, 0] - kf.cx) * z / kf.fx, (kf.uv[sel, 1] - kf.cy) * z / kf.fy,
+                      z], axis=1)
+        K = np.array([[kf.fx, 0.0, kf.cx], [0.0, kf.fy, kf.cy], [0.0, 0.0, 1.0]])
+        good, rv, tv, inl = cv2.solvePnPRansac(X, uv, K, None, iterationsCount=200,
+                                               reprojectionError=2.0, confidence=0.999,
+                                               flags=cv2.SOLVEPNP_EPNP)
+        if not good or inl is None or len(inl) < min_inl or len(inl) < 0.6 * len(sel):
+            return None
+        inl = inl[:, 0]
+        T_ck = np.eye(4)
+        T_ck[:3, :3] = cv2.Rodrigues(rv)[0]
+        T_ck[:3, 3] = tv[:, 0]
+        S = cand.T_wc @ T_ck @ kf.T_cw   # corrected kf pose (cand T_wc T_ck) times the old inverse
+        return S, len(inl), sel[inl], uv[inl]
+
+    def _weak_consistent(self, kf, S) -> bool:
+        """A weak proximity verification (``loop_proximity_weak_inliers`` <= inliers <
+        ``loop_proximity_min_inliers``) is accepted only when the corrections of the last
+        ``loop_proximity_weak_consistency`` weak ones (keyframes at most 4 ids apart, each to
+        the next) agree with it: the current keyframe corrected by each lies within 0.1 m and
+        3 deg of its correction by S."""
+        need = int(self.p.get("loop_proximity_weak_consistency", 2))
+        T = S @ kf.T_wc
+        hist = [(k, S_) for k, S_ in self._weak if kf.id - k <= 4 * need]
+        ok = 0
+        for k, S_ in reversed(hist):
+            D = inv_T(T) @ S_ @ kf.T_wc
+            ang = np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+            if np.linalg.norm(D[:3, 3]) < 0.1 and ang < 3.0:
+                ok += 1
+        self._weak = hist[-8:] + [(kf.id, S)]
+        return ok >= need
+
+    def try_proximity(self, kf) -> bool:
+        mp = self.map
+        for resp, c, shift in self.proximity_candidates(kf):
+            cand = mp.keyframes.get(c)
+            if cand is None or cand.bad:
+                continue
+            res = self.verify_proximity(kf, cand, shift)
+            if res is None:
+                continue
+            S, n_inl, kp, uv = res
+            if not self.plausible_correction(kf, cand, S):
+                continue
+            if n_inl < int(self.p.get("loop_proximity_min_inliers", 40)) and \
+                    not self._weak_consistent(kf, S):
+                continue
+            # point fusion: kf's map points whose track ends on a cand keypoint with a map point
+            d, j = cand.tree.query(uv)
+            near = d < 2.0
+            cur, loop = kf.mp_ids[kp[near]], cand.mp_ids[j[near]]
+            pair = (cur >= 0) & (loop >= 0)
+            cur_ids, loop_ids = cur[pair], loop[pair]
+            pair = ~mp.mp_bad[cur_ids] & ~mp.mp_bad[loop_ids] & (cur_ids != loop_ids)
+            cur_ids, loop_ids = cur_ids[pair], loop_ids[pair]
+            # guided search with the corrected pose, as the BoW path does
+            local = [cand] + mp.best_covisibles(cand, 10)
+            pts = np.unique(np.concatenate([k.valid_mp_ids(mp.mp_bad) for k in local]))
+            view = _KeyFrameView(kf, kf.T_cw @ inv_T(S))
+            pts = pts[~np.isin(pts, kf.mp_ids)]
+            self.matcher.search_local_points(view, mp, pts, th=3.0)
+            new_kp = np.nonzero(view.mp_ids >= 0)[0]
+            self.correct_loop(kf, cand, S, cur_ids, loop_ids, new_kp, view.mp_ids[new_kp],
+                              n_match=n_inl)
+            self.proximity_loops.append((kf.id, cand.id, n_inl))
             self.consistent_groups = []
             return True
         return False
@@ -299,7 +475,8 @@ class LoopClosing:
         new_kp = np.nonzero(view.mp_ids >= 0)[0]
         return S, ca[mask], cb[mask], new_kp, view.mp_ids[new_kp]
 
-    def correct_loop(self, kf, cand, S, cur_ids, loop_ids, new_kp, new_ids) -> None:
+    def correct_loop(self, kf, cand, S, cur_ids, loop_ids, new_kp, new_ids,
+                     n_match: Optional[int] = None) -> None:
         mp = self.map
         group = [kf] + [mp.keyframes[k] for k in kf.connections
                         if k in mp.keyframes and not mp.keyframes[k].bad]
@@ -337,7 +514,7 @@ class LoopClosing:
 
         def wt(n):
             return max(float(n), 15.0) / 100.0 if weighted else None
-        n_loop = int(len(cur_ids)) + int(len(new_kp))
+        n_loop = int(len(cur_ids)) + int(len(new_kp)) if n_match is None else int(n_match)
         edges = []
         for k in mp.good_keyframes():
             par = k.parent

@@ -57,10 +57,20 @@ DEFAULT_PARAMS = {
     "loop_min_age": 3.0,         # s; younger keyframes are never loop candidates
     "loop_max_drift": 0.3,       # a loop may move the keyframe <= this x the path since the match
     "loop_max_rotation_deg": 45.0,  # ... and turn it at most this much (false-loop gate)
+    "loop_proximity": True,      # proximity loop candidates (estimated pose near, LK + PnP check)
+    "loop_proximity_radius": 0.5,       # m, + loop_max_drift x keyframe path since the candidate
+    "loop_proximity_max_radius": 2.0,   # m, cap of that radius
+    "loop_proximity_min_path": 2.0,     # m of keyframe path since the candidate, at least
+    "loop_proximity_angle_deg": 45.0,   # optical axes at most this far apart
+    "loop_proximity_min_response": 0.3,  # phase-correlation response of the quarter images
+    "loop_proximity_candidates": 2,     # verified per keyframe (best responses)
+    "loop_proximity_min_inliers": 40,   # PnP inliers of the LK tracks (and >= 60 % of them)
+    "loop_proximity_weak_inliers": 15,  # > 0: fewer inliers (down to this) when consistent ...
+    "loop_proximity_weak_consistency": 2,  # ... with this many previous weak verifications
     "reloc_candidates": 10,
     "lost_coast_s": 0.5,         # LOST: motion-model tracking from the last tracked frame goes on this long
     "reloc_max_ms": 60.0,
-    "yield_max_ms": 60.0,        # threads: mapping waits at most this long for a frame's tracking (0: off)        # LOST: no further candidate starts after this (wall ms per frame)
+    "yield_max_ms": 60.0,        # threads: mapping waits at most this long for a frame's tracking (0: off)
     "backpressure_inliers": 80,  # threads: wait for LocalMapping when tracking gets this weak
     "min_inliers": 30,           # local-map inliers for OK (ORB-SLAM2: 30)
     "low_texture_points": 150,   # frames with fewer stereo keypoints are low-texture ...
@@ -188,6 +198,8 @@ class System:
         frame.n_primary = getattr(self.extractor, "n_primary", frame.N)   # low-texture test
         t_frame = 1000.0 * (time.perf_counter() - t0)
         out = self.tracking.track(frame)
+        if out["is_keyframe"] and self.loop_closing is not None:   # proximity loop path
+            self.loop_closing.keep_image(out["keyframe_id"], left_rect)
         state = self.tracking.state
         tracked_ok = state in (OK, RELOCALIZED) and frame.T_cw is not None and \
             self.tracking.records[-1][1] is not None
