@@ -51,19 +51,11 @@ def _zero_info(stamp, frame):
 @pytest.mark.ros
 def test_depth_node_bad_images_info_and_stamps(rospy_client, start_process):
     rospy = rospy_client
-    from geometry_msgs.msg import PoseStamped
-    from sensor_msgs.msg import PointCloud2
-    from test_depth_node import FRAME, StereoPublisher, _node_cmd, _pair
+    from test_depth_node import FRAME, _pair, _pose_topic_rig
     prefix = "/bi_d/"
-    node = start_process(_node_cmd("depth_bad", prefix, "_use_tf:=false",
-                                   "_pose_source_topic:=/bi_d/pose",
-                                   "/mdr/depth/points:=/bi_d/points"), "depth_bad")
-    got = []
-    sub = rospy.Subscriber("/bi_d/points", PointCloud2, got.append)
-    pose_pub = rospy.Publisher("/bi_d/pose", PoseStamped, queue_size=50)
-    sp = StereoPublisher(rospy, prefix)
-    assert wait_for(lambda: sp.connected() and pose_pub.get_num_connections() > 0 and
-                    sub.get_num_connections() > 0, 30), node.output()
+    node, got, sub, pose_pub, sp = _pose_topic_rig(rospy, start_process, "depth_bad", prefix,
+                                                   "/mdr/depth/points:=/bi_d/points",
+                                                   points="/bi_d/points")
     left, right = _pair()
     base = rospy.Time.now()
 

@@ -60,23 +60,33 @@ def _fields(msg):
     return [f.name for f in msg.fields]
 
 
+def _pose_topic_rig(rospy, start_process, name, prefix, *extra, points="/mdr/depth/points",
+                    others=()):
+    """A depth_node taking its poses from PREFIXpose, a subscriber collecting its clouds, the pose
+    and stereo publishers, all connected (and the publishers/subscribers in ``others``).
+    Returns (node, clouds, cloud subscriber, pose publisher, StereoPublisher)."""
+    from geometry_msgs.msg import PoseStamped
+    from sensor_msgs.msg import PointCloud2
+    node = start_process(_node_cmd(name, prefix, "_use_tf:=false",
+                                   "_pose_source_topic:=%spose" % prefix, *extra), name)
+    got = []
+    sub = rospy.Subscriber(points, PointCloud2, got.append)
+    pose_pub = rospy.Publisher(prefix + "pose", PoseStamped, queue_size=50)
+    sp = StereoPublisher(rospy, prefix)
+    assert wait_for(lambda: sp.connected() and pose_pub.get_num_connections() > 0 and
+                    sub.get_num_connections() > 0 and
+                    all(o.get_num_connections() > 0 for o in others), 30), node.output()
+    return node, got, sub, pose_pub, sp
+
+
 def test_depth_node_publishes_points_from_pose_topic_and_survives_bad_input(rospy_client,
                                                                            start_process):
     rospy = rospy_client
-    from geometry_msgs.msg import PoseStamped
-    from sensor_msgs.msg import PointCloud2
-    prefix = "/dn1/"
-    node = start_process(_node_cmd("depth_test1", prefix, "_use_tf:=false",
-                                   "_pose_source_topic:=/dn1/pose",
-                                   "_publish_depth_image:=true"), "depth1")
-    got, imgs = [], []
     from sensor_msgs.msg import Image
-    sub = rospy.Subscriber("/mdr/depth/points", PointCloud2, got.append)
+    imgs = []
     sub_img = rospy.Subscriber("/mdr/depth/image", Image, imgs.append)
-    pose_pub = rospy.Publisher("/dn1/pose", PoseStamped, queue_size=10)
-    sp = StereoPublisher(rospy, prefix)
-    assert wait_for(lambda: sp.connected() and pose_pub.get_num_connections() > 0 and
-                    sub.get_num_connections() > 0, 30), node.output()
+    node, got, sub, pose_pub, sp = _pose_topic_rig(rospy, start_process, "depth_test1", "/dn1/",
+                                                   "_publish_depth_image:=true", others=[sub_img])
     left, right = _pair()
     base = rospy.Time.now()
     stamps = []
@@ -180,17 +190,8 @@ def test_depth_node_max_rate_and_a_pose_that_arrives_after_the_images(rospy_clie
     """The filter stage waits for each matched pair's pose (the pose node is still tracking it)
     while ELAS goes on; ``max_rate`` 10 on a 20 Hz stream keeps every second pair."""
     rospy = rospy_client
-    from geometry_msgs.msg import PoseStamped
-    from sensor_msgs.msg import PointCloud2
-    prefix = "/dn3/"
-    node = start_process(_node_cmd("depth_test3", prefix, "_use_tf:=false", "_max_rate:=10",
-                                   "_pose_source_topic:=/dn3/pose", "_tf_timeout:=0.5"), "depth3")
-    got = []
-    sub = rospy.Subscriber("/mdr/depth/points", PointCloud2, got.append)
-    pose_pub = rospy.Publisher("/dn3/pose", PoseStamped, queue_size=10)
-    sp = StereoPublisher(rospy, prefix)
-    assert wait_for(lambda: sp.connected() and pose_pub.get_num_connections() > 0 and
-                    sub.get_num_connections() > 0, 30), node.output()
+    node, got, sub, pose_pub, sp = _pose_topic_rig(rospy, start_process, "depth_test3", "/dn3/",
+                                                   "_max_rate:=10", "_tf_timeout:=0.5")
     left, right = _pair()
     base = rospy.Time.now()
     stamps = [base + rospy.Duration(0.05 * i) for i in range(12)]
@@ -209,20 +210,11 @@ def test_depth_node_pauses_while_the_tracker_is_lost(rospy_client, start_process
     """Pairs stamped while the pose node reports LOST get no pose: they are not matched at all
     (counted as paused_lost); the first OK report resumes matching."""
     rospy = rospy_client
-    from geometry_msgs.msg import PoseStamped
     from mdr_slam_msgs.msg import TrackingState
-    from sensor_msgs.msg import PointCloud2
-    prefix = "/dn4/"
-    node = start_process(_node_cmd("depth_test4", prefix, "_use_tf:=false",
-                                   "_pose_source_topic:=/dn4/pose",
-                                   "_tracking_state_topic:=/dn4/state"), "depth4")
-    got = []
-    sub = rospy.Subscriber("/mdr/depth/points", PointCloud2, got.append)
-    pose_pub = rospy.Publisher("/dn4/pose", PoseStamped, queue_size=10)
     state_pub = rospy.Publisher("/dn4/state", TrackingState, queue_size=10)
-    sp = StereoPublisher(rospy, prefix)
-    assert wait_for(lambda: sp.connected() and pose_pub.get_num_connections() > 0 and
-                    state_pub.get_num_connections() > 0 and sub.get_num_connections() > 0, 30)
+    node, got, sub, pose_pub, sp = _pose_topic_rig(rospy, start_process, "depth_test4", "/dn4/",
+                                                   "_tracking_state_topic:=/dn4/state",
+                                                   others=[state_pub])
     left, right = _pair()
     base = rospy.Time.now()
 

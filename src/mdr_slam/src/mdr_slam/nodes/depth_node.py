@@ -246,14 +246,19 @@ class DepthNode:
                 if not self.matched:
                     continue
                 item = self.matched.popleft()
-            c0 = time.thread_time()
-            try:
-                self.filter_and_publish(*item)
-            except Exception as e:  # never die on input: log and go on with the next pair
-                self.counts["skipped"] += 1
-                self.warn("error", "depth_node: frame skipped after an error: %r" % (e,), "err")
-            self.cpu_s["filter"] += time.thread_time() - c0
+            self._step("filter", self.filter_and_publish, item)
             update_diagnostics(self.updater)
+
+    def _step(self, stage: str, fn, item) -> None:
+        """One pair through one stage; an error skips the pair (the node never dies on input)
+        and the stage's thread CPU is counted for the diagnostics."""
+        c0 = time.thread_time()
+        try:
+            fn(*item)
+        except Exception as e:  # never die on input: log and go on with the next pair
+            self.counts["skipped"] += 1
+            self.warn("error", "depth_node: frame skipped after an error: %r" % (e,), "err")
+        self.cpu_s[stage] += time.thread_time() - c0
 
     def _work(self):
         """Stage 1: the newest pair -> checks, conversion, ELAS -> the filter stage's queue."""
@@ -265,13 +270,7 @@ class DepthNode:
                 item, self.pending = self.pending, None
             if item is None:
                 continue
-            c0 = time.thread_time()
-            try:
-                self.process(*item)
-            except Exception as e:  # never die on input: log and go on with the next pair
-                self.counts["skipped"] += 1
-                self.warn("error", "depth_node: frame skipped after an error: %r" % (e,), "err")
-            self.cpu_s["match"] += time.thread_time() - c0
+            self._step("match", self.process, item)
 
     def _pose_at(self, stamp, frame: str) -> Optional[np.ndarray]:
         import rospy
