@@ -67,18 +67,18 @@ def _live_ate(bag: str, poses, out_dir: Optional[str] = None) -> Optional[dict]:
     from ..eval.trajectory import ate
     from ..io import Trajectory
     from ..io.trajectory import write_tum
-    if out_dir and len(poses) > 0:
-        srt = sorted(poses, key=lambda p: p[0])
-        write_tum(os.path.join(out_dir, "live_trajectory.tum"), Trajectory.from_matrices(
-            np.array([p[0] for p in srt]), np.array([p[1] for p in srt])))
+    if len(poses) == 0:
+        return None
+    poses = sorted(poses, key=lambda p: p[0])
+    est = Trajectory.from_matrices(np.array([p[0] for p in poses]), np.array([p[1] for p in poses]))
+    if out_dir:
+        write_tum(os.path.join(out_dir, "live_trajectory.tum"), est)
     try:
         gt = read_ground_truth(bag)
     except Exception:
         return None
     if len(gt) < 2 or len(poses) < 3:
         return None
-    poses = sorted(poses, key=lambda p: p[0])
-    est = Trajectory.from_matrices(np.array([p[0] for p in poses]), np.array([p[1] for p in poses]))
     ref = Trajectory.from_matrices(np.asarray(gt.stamps), np.asarray(gt.Ts))
     try:
         e = ate(est, ref)
