@@ -180,6 +180,7 @@ class Frame:
             left, right, self.uv, self.octave, self.desc, uv_r, oct_r, desc_r, self.scale,
             self.fx, self.baseline)
         self.N = len(self.uv)
+        self.image = left          # kept while this is the last frame (optical-flow tracking)
         self.mp_ids = -np.ones(self.N, dtype=np.int64)     # matched MapPoint id per keypoint
         self.outlier = np.zeros(self.N, dtype=bool)
         self.T_cw: Optional[np.ndarray] = None
@@ -197,6 +198,23 @@ class Frame:
     def set_pose(self, T_cw: np.ndarray) -> None:
         from .optimizer import normalize_pose
         self.T_cw = normalize_pose(np.asarray(T_cw, dtype=float))
+
+    def append_keypoints(self, uv, octave, angle, desc, ur, depth) -> np.ndarray:
+        """Add keypoints found by other means than detection (optical-flow tracks of the last
+        frame's map points); returns their indices. They are unmatched and inliers."""
+        n = len(uv)
+        idx = np.arange(self.N, self.N + n)
+        self.uv = np.concatenate([self.uv, np.asarray(uv, np.float32).reshape(-1, 2)])
+        self.octave = np.concatenate([self.octave, np.asarray(octave, self.octave.dtype)])
+        self.angle = np.concatenate([self.angle, np.asarray(angle, self.angle.dtype)])
+        self.desc = np.concatenate([self.desc, np.asarray(desc, np.uint8).reshape(-1, 32)])
+        self.ur = np.concatenate([self.ur, np.asarray(ur, self.ur.dtype)])
+        self.depth = np.concatenate([self.depth, np.asarray(depth, self.depth.dtype)])
+        self.mp_ids = np.concatenate([self.mp_ids, -np.ones(n, self.mp_ids.dtype)])
+        self.outlier = np.concatenate([self.outlier, np.zeros(n, bool)])
+        self.N += n
+        self._tree = None
+        return idx
 
     @property
     def T_wc(self) -> np.ndarray:

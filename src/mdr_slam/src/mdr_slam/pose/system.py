@@ -75,6 +75,10 @@ DEFAULT_PARAMS = {
     "min_inliers": 30,           # local-map inliers for OK (ORB-SLAM2: 30)
     "low_texture_points": 150,   # frames with fewer stereo keypoints are low-texture ...
     "min_inliers_low_texture": 15,  # ... and are tracked OK with this many inliers
+    "flow_tracking": True,       # optical-flow fallback when the motion model fails (blank walls)
+    "flow_window": 21,           # Lucas-Kanade window (px) ...
+    "flow_levels": 3,            # ... pyramid levels above full resolution ...
+    "flow_fb_px": 1.0,           # ... and forward-backward disagreement allowed (px)
     "wide_search_th": 6.0,       # local-map projection window (x4 px x scale) when both the
                                  # motion model and the reference keyframe fail
 }
@@ -196,6 +200,7 @@ class System:
         frame = Frame(stamp, left_rect, right_rect, self.camera, self.extractor,
                       self.extractor_right, th_depth_factor=self.p["th_depth"])
         frame.n_primary = getattr(self.extractor, "n_primary", frame.N)   # low-texture test
+        frame.right_image = right_rect   # optical-flow stereo of tracked keypoints
         t_frame = 1000.0 * (time.perf_counter() - t0)
         out = self.tracking.track(frame)
         if out["is_keyframe"] and self.loop_closing is not None:   # proximity loop path

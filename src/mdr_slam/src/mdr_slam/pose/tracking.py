@@ -80,6 +80,8 @@ class Tracking:
             if self.state in (OK, RELOCALIZED) or coasting:
                 if self.velocity is not None and frame.id > self.last_reloc_frame_id + 1:
                     ok = self.track_with_motion_model(frame)
+                if not ok and self.p["flow_tracking"]:
+                    ok = self.track_last_frame_flow(frame)
                 if not ok:
                     ok = self.track_reference_keyframe(frame)
                 frame.ref_kf = self.ref_kf
@@ -281,6 +283,114 @@ class Tracking:
             self.matcher.search_local_points(frame, self.map, pts, th=3.0)
         if np.count_nonzero(frame.mp_ids >= 0) < 10:
             return False
+        Optimizer.pose_optimization(frame, self.map)
+        return self._discard_outliers(frame) >= 10
+
+    def track_last_frame_flow(self, frame: Frame) -> bool:
+        """Optical-flow fallback (not in ORB-SLAM2; KLT front ends such as VINS-Fusion's): the last
+        frame's map-point keypoints are followed into the frame by pyramidal Lucas-Kanade
+        (cv2.calcOpticalFlowPyrLK, started at the motion-model projection, forward-backward
+        checked), PnP RANSAC on the map points gives the pose, and the tracks become keypoints of
+        the frame (ORB descriptor computed there, stereo by a left-right flow) observing those map
+        points. On blank walls the few corners found are sensor noise that does not repeat, so
+        descriptor matching finds almost nothing from one frame to the next, while the patches
+        around them (the faint texture) are still followed by the flow: tracks then outlive the
+        corners, and the map points keep being observed instead of being replaced every frame."""
+        import cv2
+        last = self.last_frame
+        if last is None or last.T_cw is None or getattr(last, "image", None) is None:
+            return False
+        self._update_last_frame()
+        sel = np.nonzero(last.mp_ids >= 0)[0]
+        sel = sel[~self.map.mp_bad[last.mp_ids[sel]]]
+        if len(sel) < 10:
+            return False
+        ids = last.mp_ids[sel]
+        Pw = self.map.mp_pos[ids]
+        T_pred = (self.predicted_velocity(frame) if self.velocity is not None else np.eye(4)) @ \
+            last.T_cw
+        Pc = Pw @ T_pred[:3, :3].T + T_pred[:3, 3]
+        p0 = last.uv[sel].astype(np.float32)
+        p1 = p0.copy()
+        front = Pc[:, 2] > 0.05
+        p1[front, 0] = frame.fx * Pc[front, 0] / Pc[front, 2] + frame.cx
+        p1[front, 1] = frame.fy * Pc[front, 1] / Pc[front, 2] + frame.cy
+        w, h = frame.width, frame.height
+        inside = (p1[:, 0] >= 0) & (p1[:, 0] < w) & (p1[:, 1] >= 0) & (p1[:, 1] < h)
+        p1[~inside] = p0[~inside]
+        win = int(self.p["flow_window"])
+        lk = dict(winSize=(win, win), maxLevel=int(self.p["flow_levels"]),
+                  criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))
+        p1, st, _ = cv2.calcOpticalFlowPyrLK(last.image, frame.image, p0.reshape(-1, 1, 2),
+                                             p1.reshape(-1, 1, 2),
+                                             flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
+        p0b, st2, _ = cv2.calcOpticalFlowPyrLK(frame.image, last.image, p1, p0.reshape(-1, 1, 2).copy(),
+                                               flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
+        p1, p0b = p1.reshape(-1, 2), p0b.reshape(-1, 2)
+        edge = 20.0
+        good = ((st.ravel() == 1) & (st2.ravel() == 1) &
+                (np.linalg.norm(p0b - p0, axis=1) <= float(self.p["flow_fb_px"])) &
+                (p1[:, 0] >= edge) & (p1[:, 0] < w - edge) & (p1[:, 1] >= edge) & (p1[:, 1] < h - edge))
+        if np.count_nonzero(good) < 10:
+            return False
+        sel, ids, Pw, p1 = sel[good], ids[good], Pw[good], p1[good]
+        K = np.array([[frame.fx, 0, frame.cx], [0, frame.fy, frame.cy], [0, 0, 1.0]])
+        rvec0 = cv2.Rodrigues(T_pred[:3, :3])[0]
+        tvec0 = T_pred[:3, 3].reshape(3, 1).copy()
+        okp, rvec, tvec, inl = cv2.solvePnPRansac(
+            Pw.astype(np.float64), p1.astype(np.float64), K, None, rvec=rvec0, tvec=tvec0,
+            useExtrinsicGuess=True, iterationsCount=100, reprojectionError=2.0, confidence=0.99,
+            flags=cv2.SOLVEPNP_ITERATIVE)
+        if not okp or inl is None or len(inl) < 10:
+            return False
+        inl = inl.ravel()
+        sel, ids, Pw, p1 = sel[inl], ids[inl], Pw[inl], p1[inl]
+        T = np.eye(4)
+        T[:3, :3] = cv2.Rodrigues(rvec)[0]
+        T[:3, 3] = tvec.ravel()
+        # descriptors at the tracks, at the last keypoint's octave and angle (cv2.ORB.compute
+        # keeps the given angle; it drops keypoints too close to the border)
+        octv = last.octave[sel]
+        s = frame.scale[octv]
+        off = 0.5 * (s - 1.0)   # ORBextractor's level-pixel-centre offset, undone
+        kps = [cv2.KeyPoint(float(x), float(y), float(31.0 * sc), float(a), 0.0, int(o), int(k))
+               for k, (x, y, sc, a, o) in enumerate(zip(p1[:, 0] - off, p1[:, 1] - off, s,
+                                                        last.angle[sel], octv))]
+        kps, desc = self.extractor.orb.compute(frame.image, kps)
+        if desc is None or len(kps) < 10:
+            return False
+        k = np.array([kp.class_id for kp in kps], dtype=np.int64)
+        sel, ids, Pw, p1, desc = sel[k], ids[k], Pw[k], p1[k], desc
+        # stereo: the same patches followed into the right image, started at the disparity the
+        # map point predicts; kept when on the row, consistent both ways and near that prediction
+        Pc = Pw @ T[:3, :3].T + T[:3, 3]
+        z = np.maximum(Pc[:, 2], 1e-3)
+        d_pred = frame.bf / z
+        ur = -np.ones(len(sel), np.float32)
+        depth = -np.ones(len(sel), np.float32)
+        right = getattr(frame, "right_image", None)
+        if right is not None:
+            q0 = p1.astype(np.float32)
+            q1 = q0.copy()
+            q1[:, 0] -= d_pred.astype(np.float32)
+            q1, sr, _ = cv2.calcOpticalFlowPyrLK(frame.image, right, q0.reshape(-1, 1, 2),
+                                                 q1.reshape(-1, 1, 2),
+                                                 flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
+            q0b, sr2, _ = cv2.calcOpticalFlowPyrLK(right, frame.image, q1, q0.reshape(-1, 1, 2).copy(),
+                                                   flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
+            q1, q0b = q1.reshape(-1, 2), q0b.reshape(-1, 2)
+            disp = q0[:, 0] - q1[:, 0]
+            okr = ((sr.ravel() == 1) & (sr2.ravel() == 1) &
+                   (np.linalg.norm(q0b - q0, axis=1) <= float(self.p["flow_fb_px"])) &
+                   (np.abs(q1[:, 1] - q0[:, 1]) <= 1.0) & (disp > 0.5) & (disp < frame.fx) &
+                   (np.abs(disp - d_pred) <= np.maximum(2.0, 0.25 * d_pred)))
+            ur[okr] = q1[okr, 0]
+            depth[okr] = frame.bf / disp[okr]
+        frame.set_pose(T)
+        frame.mp_ids[:] = -1
+        frame.outlier[:] = False
+        new = frame.append_keypoints(p1, last.octave[sel], last.angle[sel], desc, ur, depth)
+        frame.mp_ids[new] = ids
         Optimizer.pose_optimization(frame, self.map)
         return self._discard_outliers(frame) >= 10
 
