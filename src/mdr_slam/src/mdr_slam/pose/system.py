@@ -90,7 +90,7 @@ _REASONS = {"local_ba": 1, "loop_closure": 2}
 NODE_KEYS = {"source", "map_frame", "odom_frame", "base_frame", "camera_frame", "base_to_camera",
              "publish_tf", "publish_odom_tf", "path_max_length", "calib", "trajectory_path",
              "trajectory_format", "sync_queue_size", "sync_slop", "threads", "path_period",
-             "max_pending", "blas_threads", "diagnostics_period", "path_min_translation",
+             "max_pending", "blas_threads", "cv_threads", "diagnostics_period", "path_min_translation",
              "path_min_rotation_deg"}
 
 
