@@ -286,14 +286,95 @@ class Tracking:
         Optimizer.pose_optimization(frame, self.map)
         return self._discard_outliers(frame) >= 10
 
+    def _lk(self):
+        import cv2
+        win = int(self.p["flow_window"])
+        return dict(winSize=(win, win), maxLevel=int(self.p["flow_levels"]),
+                    criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))
+
+    def _flow(self, img0, img1, p0, p1):
+        """Pyramidal Lucas-Kanade from ``p0`` in img0 to img1 started at ``p1``, checked back
+        (forward-backward disagreement <= flow_fb_px): (tracked positions, ok mask)."""
+        import cv2
+        lk = self._lk()
+        p0 = np.ascontiguousarray(p0, np.float32).reshape(-1, 1, 2)
+        q, st, _ = cv2.calcOpticalFlowPyrLK(img0, img1, p0, np.ascontiguousarray(
+            p1, np.float32).reshape(-1, 1, 2), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
+        b, st2, _ = cv2.calcOpticalFlowPyrLK(img1, img0, q, p0.copy(),
+                                             flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
+        q, b = q.reshape(-1, 2), b.reshape(-1, 2)
+        ok = ((st.ravel() == 1) & (st2.ravel() == 1) &
+              (np.linalg.norm(b - p0.reshape(-1, 2), axis=1) <= float(self.p["flow_fb_px"])))
+        return q, ok
+
+    def _flow_from_last(self, frame: Frame, sel: np.ndarray, T_pred: np.ndarray):
+        """The last frame's keypoints ``sel`` (map points) followed into ``frame``, started at
+        their projection with ``T_pred``: (sel, map point ids, world points, positions)."""
+        last = self.last_frame
+        ids = last.mp_ids[sel]
+        Pw = self.map.mp_pos[ids]
+        Pc = Pw @ T_pred[:3, :3].T + T_pred[:3, 3]
+        p0 = last.uv[sel].astype(np.float32)
+        p1 = p0.copy()
+        front = Pc[:, 2] > 0.05
+        p1[front, 0] = frame.fx * Pc[front, 0] / Pc[front, 2] + frame.cx
+        p1[front, 1] = frame.fy * Pc[front, 1] / Pc[front, 2] + frame.cy
+        w, h = frame.width, frame.height
+        inside = (p1[:, 0] >= 0) & (p1[:, 0] < w) & (p1[:, 1] >= 0) & (p1[:, 1] < h)
+        p1[~inside] = p0[~inside]
+        p1, good = self._flow(last.image, frame.image, p0, p1)
+        edge = 20.0
+        good &= (p1[:, 0] >= edge) & (p1[:, 0] < w - edge) & (p1[:, 1] >= edge) & (p1[:, 1] < h - edge)
+        return sel[good], ids[good], Pw[good], p1[good]
+
+    def _append_tracks(self, frame: Frame, sel, ids, Pw, p1) -> int:
+        """Flow tracks (of the last frame's keypoints ``sel``) become keypoints of ``frame``
+        observing map points ``ids``: ORB descriptor computed there at the last keypoint's octave
+        and angle (cv2.ORB.compute keeps a given angle and drops keypoints at the border), stereo
+        by a left-right flow started at the disparity the map point predicts with the frame's
+        pose (kept when on the row, consistent both ways and near that prediction)."""
+        import cv2
+        last = self.last_frame
+        octv = last.octave[sel]
+        sc = frame.scale[octv]
+        off = 0.5 * (sc - 1.0)   # ORBextractor's level-pixel-centre offset, undone
+        kps = [cv2.KeyPoint(float(x), float(y), float(31.0 * c), float(a), 0.0, int(o), int(k))
+               for k, (x, y, c, a, o) in enumerate(zip(p1[:, 0] - off, p1[:, 1] - off, sc,
+                                                       last.angle[sel], octv))]
+        if not kps:
+            return 0
+        kps, desc = self.extractor.orb.compute(frame.image, kps)
+        if desc is None or not kps:
+            return 0
+        k = np.array([kp.class_id for kp in kps], dtype=np.int64)
+        sel, ids, Pw, p1 = sel[k], ids[k], Pw[k], p1[k]
+        T = frame.T_cw
+        z = np.maximum(Pw @ T[2, :3] + T[2, 3], 1e-3)
+        d_pred = frame.bf / z
+        ur = -np.ones(len(sel), np.float32)
+        depth = -np.ones(len(sel), np.float32)
+        right = getattr(frame, "right_image", None)
+        if right is not None:
+            q0 = p1.astype(np.float32)
+            q1 = q0.copy()
+            q1[:, 0] -= d_pred.astype(np.float32)
+            q1, okr = self._flow(frame.image, right, q0, q1)
+            disp = q0[:, 0] - q1[:, 0]
+            okr &= ((np.abs(q1[:, 1] - q0[:, 1]) <= 1.0) & (disp > 0.5) & (disp < frame.fx) &
+                    (np.abs(disp - d_pred) <= np.maximum(2.0, 0.25 * d_pred)))
+            ur[okr] = q1[okr, 0]
+            depth[okr] = frame.bf / disp[okr]
+        new = frame.append_keypoints(p1, octv[k], last.angle[sel], desc, ur, depth)
+        frame.mp_ids[new] = ids
+        return len(new)
+
     def track_last_frame_flow(self, frame: Frame) -> bool:
         """Optical-flow fallback (not in ORB-SLAM2; KLT front ends such as VINS-Fusion's): the last
         frame's map-point keypoints are followed into the frame by pyramidal Lucas-Kanade
-        (cv2.calcOpticalFlowPyrLK, started at the motion-model projection, forward-backward
-        checked), PnP RANSAC on the map points gives the pose, and the tracks become keypoints of
-        the frame (ORB descriptor computed there, stereo by a left-right flow) observing those map
-        points. On blank walls the few corners found are sensor noise that does not repeat, so
-        descriptor matching finds almost nothing from one frame to the next, while the patches
+        (started at the motion-model projection, forward-backward checked), PnP RANSAC on the
+        map points gives the pose, and the tracks become keypoints of the frame observing those
+        map points. On blank walls the few corners found are sensor noise that does not repeat,
+        so descriptor matching finds almost nothing from one frame to the next, while the patches
         around them (the faint texture) are still followed by the flow: tracks then outlive the
         corners, and the map points keep being observed instead of being replaced every frame."""
         import cv2
@@ -305,92 +386,28 @@ class Tracking:
         sel = sel[~self.map.mp_bad[last.mp_ids[sel]]]
         if len(sel) < 10:
             return False
-        ids = last.mp_ids[sel]
-        Pw = self.map.mp_pos[ids]
         T_pred = (self.predicted_velocity(frame) if self.velocity is not None else np.eye(4)) @ \
             last.T_cw
-        Pc = Pw @ T_pred[:3, :3].T + T_pred[:3, 3]
-        p0 = last.uv[sel].astype(np.float32)
-        p1 = p0.copy()
-        front = Pc[:, 2] > 0.05
-        p1[front, 0] = frame.fx * Pc[front, 0] / Pc[front, 2] + frame.cx
-        p1[front, 1] = frame.fy * Pc[front, 1] / Pc[front, 2] + frame.cy
-        w, h = frame.width, frame.height
-        inside = (p1[:, 0] >= 0) & (p1[:, 0] < w) & (p1[:, 1] >= 0) & (p1[:, 1] < h)
-        p1[~inside] = p0[~inside]
-        win = int(self.p["flow_window"])
-        lk = dict(winSize=(win, win), maxLevel=int(self.p["flow_levels"]),
-                  criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))
-        p1, st, _ = cv2.calcOpticalFlowPyrLK(last.image, frame.image, p0.reshape(-1, 1, 2),
-                                             p1.reshape(-1, 1, 2),
-                                             flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
-        p0b, st2, _ = cv2.calcOpticalFlowPyrLK(frame.image, last.image, p1, p0.reshape(-1, 1, 2).copy(),
-                                               flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
-        p1, p0b = p1.reshape(-1, 2), p0b.reshape(-1, 2)
-        edge = 20.0
-        good = ((st.ravel() == 1) & (st2.ravel() == 1) &
-                (np.linalg.norm(p0b - p0, axis=1) <= float(self.p["flow_fb_px"])) &
-                (p1[:, 0] >= edge) & (p1[:, 0] < w - edge) & (p1[:, 1] >= edge) & (p1[:, 1] < h - edge))
-        if np.count_nonzero(good) < 10:
+        sel, ids, Pw, p1 = self._flow_from_last(frame, sel, T_pred)
+        if len(sel) < 10:
             return False
-        sel, ids, Pw, p1 = sel[good], ids[good], Pw[good], p1[good]
         K = np.array([[frame.fx, 0, frame.cx], [0, frame.fy, frame.cy], [0, 0, 1.0]])
-        rvec0 = cv2.Rodrigues(T_pred[:3, :3])[0]
-        tvec0 = T_pred[:3, 3].reshape(3, 1).copy()
         okp, rvec, tvec, inl = cv2.solvePnPRansac(
-            Pw.astype(np.float64), p1.astype(np.float64), K, None, rvec=rvec0, tvec=tvec0,
+            Pw.astype(np.float64), p1.astype(np.float64), K, None,
+            rvec=cv2.Rodrigues(T_pred[:3, :3])[0], tvec=T_pred[:3, 3].reshape(3, 1).copy(),
             useExtrinsicGuess=True, iterationsCount=100, reprojectionError=2.0, confidence=0.99,
             flags=cv2.SOLVEPNP_ITERATIVE)
         if not okp or inl is None or len(inl) < 10:
             return False
         inl = inl.ravel()
-        sel, ids, Pw, p1 = sel[inl], ids[inl], Pw[inl], p1[inl]
         T = np.eye(4)
         T[:3, :3] = cv2.Rodrigues(rvec)[0]
         T[:3, 3] = tvec.ravel()
-        # descriptors at the tracks, at the last keypoint's octave and angle (cv2.ORB.compute
-        # keeps the given angle; it drops keypoints too close to the border)
-        octv = last.octave[sel]
-        s = frame.scale[octv]
-        off = 0.5 * (s - 1.0)   # ORBextractor's level-pixel-centre offset, undone
-        kps = [cv2.KeyPoint(float(x), float(y), float(31.0 * sc), float(a), 0.0, int(o), int(k))
-               for k, (x, y, sc, a, o) in enumerate(zip(p1[:, 0] - off, p1[:, 1] - off, s,
-                                                        last.angle[sel], octv))]
-        kps, desc = self.extractor.orb.compute(frame.image, kps)
-        if desc is None or len(kps) < 10:
-            return False
-        k = np.array([kp.class_id for kp in kps], dtype=np.int64)
-        sel, ids, Pw, p1, desc = sel[k], ids[k], Pw[k], p1[k], desc
-        # stereo: the same patches followed into the right image, started at the disparity the
-        # map point predicts; kept when on the row, consistent both ways and near that prediction
-        Pc = Pw @ T[:3, :3].T + T[:3, 3]
-        z = np.maximum(Pc[:, 2], 1e-3)
-        d_pred = frame.bf / z
-        ur = -np.ones(len(sel), np.float32)
-        depth = -np.ones(len(sel), np.float32)
-        right = getattr(frame, "right_image", None)
-        if right is not None:
-            q0 = p1.astype(np.float32)
-            q1 = q0.copy()
-            q1[:, 0] -= d_pred.astype(np.float32)
-            q1, sr, _ = cv2.calcOpticalFlowPyrLK(frame.image, right, q0.reshape(-1, 1, 2),
-                                                 q1.reshape(-1, 1, 2),
-                                                 flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
-            q0b, sr2, _ = cv2.calcOpticalFlowPyrLK(right, frame.image, q1, q0.reshape(-1, 1, 2).copy(),
-                                                   flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
-            q1, q0b = q1.reshape(-1, 2), q0b.reshape(-1, 2)
-            disp = q0[:, 0] - q1[:, 0]
-            okr = ((sr.ravel() == 1) & (sr2.ravel() == 1) &
-                   (np.linalg.norm(q0b - q0, axis=1) <= float(self.p["flow_fb_px"])) &
-                   (np.abs(q1[:, 1] - q0[:, 1]) <= 1.0) & (disp > 0.5) & (disp < frame.fx) &
-                   (np.abs(disp - d_pred) <= np.maximum(2.0, 0.25 * d_pred)))
-            ur[okr] = q1[okr, 0]
-            depth[okr] = frame.bf / disp[okr]
         frame.set_pose(T)
         frame.mp_ids[:] = -1
         frame.outlier[:] = False
-        new = frame.append_keypoints(p1, last.octave[sel], last.angle[sel], desc, ur, depth)
-        frame.mp_ids[new] = ids
+        if self._append_tracks(frame, sel[inl], ids[inl], Pw[inl], p1[inl]) < 10:
+            return False
         Optimizer.pose_optimization(frame, self.map)
         return self._discard_outliers(frame) >= 10
 
