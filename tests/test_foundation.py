@@ -80,7 +80,12 @@ def test_launch_prefix_args_reach_the_node_command():
                            capture_output=True, text=True)
         assert r.returncode == 0, r.stderr
         return r.stdout.strip().splitlines()[-1]
-    assert command("/depth_node").split()[0].endswith("/depth_node")
+    # by default depth and fusion yield the CPU to the tracker
+    assert command("/depth_node").startswith("nice -n 10 ")
+    assert command("/fusion_node").startswith("nice -n 10 ")
+    assert command("/pose_node").split()[0].endswith("/pose_node")
+    assert command("/depth_node", "mapping_nice:=0").split()[0].endswith("/depth_node")
+    assert command("/fusion_node", "mapping_nice:=5").startswith("nice -n 5 ")
     assert command("/depth_node", "depth_prefix:=nice -n 5").startswith("nice -n 5 ")
     assert not command("/pose_node", "depth_prefix:=nice -n 5").startswith("nice")
     assert command("/fusion_node", "fusion_prefix:=taskset -c 1").startswith("taskset -c 1 ")
