@@ -9,7 +9,7 @@ publishes ~13 of 20 Hz). Per lap: map size, confident points, accuracy RMSE / co
 the simulator's ``gt_map.ply``, integration time; at the end, what the points added after lap 1 are.
 
     python scripts/fusion_laps.py --laps 20                       # cache in output/fusion_laps/
-    python scripts/fusion_laps.py --laps 20 --set carve=false     # ablation of one VoxelMap parameter
+    python scripts/fusion_laps.py --laps 20 --set min_view_ratio=0  # ablation of one VoxelMap parameter
 """
 from __future__ import annotations
 
@@ -71,6 +71,7 @@ def main():
     ap.add_argument("--wrap", action="store_true",
                     help="stamps jump back each lap (a looping bag) instead of increasing")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--save", default="", help="write the final map here (PLY/PCD, VoxelMap.save)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="VoxelMap parameter over config/fusion.yaml (repeatable)")
     args = ap.parse_args()
@@ -93,7 +94,8 @@ def main():
         k, v = kv.split("=", 1)
         fp[k] = yaml.safe_load(v)
     m = VoxelMap.from_config(fp)
-    print("VoxelMap:", {k: getattr(m, k) for k in ("voxel_size", "min_confidence", "grace")},
+    print("VoxelMap:", {k: getattr(m, k, None) for k in ("voxel_size", "min_confidence", "grace",
+                                                          "min_view_ratio", "view_window")},
           "sets:", args.set)
     rng = np.random.default_rng(args.seed)
     print("%4s %8s %8s %8s %8s %9s %9s %8s %8s %8s" % ("lap", "points", "conf>=3", "removed", "folded", "rmse mm",
@@ -124,6 +126,7 @@ def main():
             lap1_end = float(d["stamps"][src].max()) + (0.0 if args.wrap else 0.0)
     print("integration over all laps: median %.1f ms, p90 %.1f ms (wall)" % (
         np.median(ms_all), np.percentile(ms_all, 90)))
+    print("removed at the end of view_window (view ratio): %d" % getattr(m, "n_view_removed", 0))
     print("points re-keyed (mean left its voxel): %d, folded into their new voxel's point: %d" % (
         getattr(m, "n_rekeyed", 0), getattr(m, "n_cell_folds", 0)))
     # what are the points that came after lap 1?
@@ -149,6 +152,8 @@ def main():
               "agree (<45 deg) %.0f %%, opposite (>135 deg) %.0f %%" % (
                   1e3 * np.median(dn), 1e3 * np.percentile(dn, 10), 1e3 * np.percentile(dn, 90),
                   100 * np.mean(cosn > np.cos(np.radians(45))), 100 * np.mean(cosn < -0.7)))
+    if args.save:
+        m.save(args.save)
     m.close()
 
 

@@ -62,6 +62,10 @@ DEFAULTS = {
     "confidence": True,             # false: plain voxel grid (ablation)
     "min_confidence": 3,
     "grace": 5.0,
+    "min_view_ratio": 0.0,          # > 0: ... and seen in this share of the clouds that had it in view
+    "view_window": 120.0,           # s of views counted per point before the ratio test (>= grace)
+    "view_bin": 0.01,               # direction bin (x/z, y/z) of the in-view test's depth image
+    "view_margin": 0.0,             # m; 0 = 2 voxels
     "clean_every": 10,              # integrations between cleaning passes (0 = off)
     "clean_period": 0.0,            # s between cleaning passes (0 = off)
     "min_depth": 0.1,
