@@ -357,22 +357,28 @@ def test_mdr_vocab_trains_on_a_folder(tmp_path, sequence):
     assert mdr_main(["vocab", str(tmp_path / "missing"), "-o", out]) == 2
 
 
+def _office_segment(t0, t1, dt):
+    """Half-resolution renders of the office sample's trajectory (loop+pure_rotation, seed 0)
+    from t0 to t1 every dt s: (camera, stamps, poses, [(left, right)])."""
+    from mdr_slam.sim.render import Simulator, sim_camera
+    from mdr_slam.sim.scene import make_scene
+    from mdr_slam.sim.trajectory import build_trajectory
+    scene = make_scene("office", seed=0)
+    cam = sim_camera(scale=0.5)
+    stamps = np.arange(t0, t1, dt)
+    poses = build_trajectory("loop+pure_rotation", 30.0, 0, scene=scene).poses(stamps)
+    sim = Simulator(scene, cam, seed=0, noise=2.0)
+    images = [sim.render(T, index=i, depth=False) for i, T in enumerate(poses)]
+    return cam, stamps, poses, [(im["left"], im["right"]) for im in images]
+
+
 @pytest.fixture(scope="module")
 def office_low_texture():
     """The office sample's hard stretch at half resolution (376x240, 20 Hz): 6.5 s from a
     textured poster into blank, low-contrast walls while the camera turns at 12-23 deg/s, then
     slowing to the stop before the sweep (loop+pure_rotation, seed 0, t = 7.0-13.5 s: the
     frames where the full-resolution sample used to be lost). Only these frames are rendered."""
-    from mdr_slam.sim.render import Simulator, sim_camera
-    from mdr_slam.sim.scene import make_scene
-    from mdr_slam.sim.trajectory import build_trajectory
-    scene = make_scene("office", seed=0)
-    cam = sim_camera(scale=0.5)
-    stamps = np.arange(7.0, 13.5, 0.05)
-    poses = build_trajectory("loop+pure_rotation", 30.0, 0, scene=scene).poses(stamps)
-    sim = Simulator(scene, cam, seed=0, noise=2.0)
-    images = [sim.render(T, index=i, depth=False) for i, T in enumerate(poses)]
-    return cam, stamps, poses, [(im["left"], im["right"]) for im in images]
+    return _office_segment(7.0, 13.5, 0.05)
 
 
 def test_low_texture_turn_tracked_end_to_end(office_low_texture):
@@ -864,16 +870,7 @@ def office_blank_wall():
     """The office sample's blank wall (cloud texture, a saturated specular band, one box edge;
     frames 310-390 of the 20 Hz sample) at half resolution and 10 Hz: every second frame, as a
     live node that has to skip frames sees it."""
-    from mdr_slam.sim.render import Simulator, sim_camera
-    from mdr_slam.sim.scene import make_scene
-    from mdr_slam.sim.trajectory import build_trajectory
-    scene = make_scene("office", seed=0)
-    cam = sim_camera(scale=0.5)
-    stamps = np.arange(15.5, 19.5, 0.1)
-    poses = build_trajectory("loop+pure_rotation", 30.0, 0, scene=scene).poses(stamps)
-    sim = Simulator(scene, cam, seed=0, noise=2.0)
-    images = [sim.render(T, index=i, depth=False) for i, T in enumerate(poses)]
-    return cam, stamps, poses, [(im["left"], im["right"]) for im in images]
+    return _office_segment(15.5, 19.5, 0.1)
 
 
 def test_optical_flow_carries_tracking_over_a_blank_wall(office_blank_wall, monkeypatch):

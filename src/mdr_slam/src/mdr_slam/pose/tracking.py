@@ -33,6 +33,17 @@ LOST = "LOST"
 RELOCALIZED = "RELOCALIZED"
 
 
+def _set_pnp_pose(frame: Frame, rvec, tvec) -> None:
+    """The frame takes a PnP pose (cv2 rotation vector, translation) and starts unmatched."""
+    import cv2
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(rvec)[0]
+    T[:3, 3] = np.ravel(tvec)
+    frame.set_pose(T)
+    frame.mp_ids[:] = -1
+    frame.outlier[:] = False
+
+
 class Tracking:
     def __init__(self, system, params: dict):
         self.system = system
@@ -265,12 +276,7 @@ class Tracking:
             iterationsCount=200, reprojectionError=3.0, confidence=0.99, flags=cv2.SOLVEPNP_EPNP)
         if not okp or inl is None or len(inl) < 10:
             return False
-        T = np.eye(4)
-        T[:3, :3] = cv2.Rodrigues(rvec)[0]
-        T[:3, 3] = tvec.ravel()
-        frame.set_pose(T)
-        frame.mp_ids[:] = -1
-        frame.outlier[:] = False
+        _set_pnp_pose(frame, rvec, tvec)
         inl = inl.ravel()
         mp_of = last.mp_ids[st[ia[inl]]]
         good = (mp_of >= 0) & ~self.map.mp_bad[np.maximum(mp_of, 0)]
@@ -400,12 +406,7 @@ class Tracking:
         if not okp or inl is None or len(inl) < 10:
             return False
         inl = inl.ravel()
-        T = np.eye(4)
-        T[:3, :3] = cv2.Rodrigues(rvec)[0]
-        T[:3, 3] = tvec.ravel()
-        frame.set_pose(T)
-        frame.mp_ids[:] = -1
-        frame.outlier[:] = False
+        _set_pnp_pose(frame, rvec, tvec)
         if self._append_tracks(frame, sel[inl], ids[inl], Pw[inl], p1[inl]) < 10:
             return False
         Optimizer.pose_optimization(frame, self.map)
