@@ -180,7 +180,8 @@ class Frame:
             left, right, self.uv, self.octave, self.desc, uv_r, oct_r, desc_r, self.scale,
             self.fx, self.baseline)
         self.N = len(self.uv)
-        self.image = left          # kept while this is the last frame (optical-flow tracking)
+        # the images, for the optical-flow fallback (only the last frame is kept by Tracking)
+        self.image, self.right_image = left, right
         self.mp_ids = -np.ones(self.N, dtype=np.int64)     # matched MapPoint id per keypoint
         self.outlier = np.zeros(self.N, dtype=bool)
         self.T_cw: Optional[np.ndarray] = None

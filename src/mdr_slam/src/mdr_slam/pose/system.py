@@ -200,7 +200,6 @@ class System:
         frame = Frame(stamp, left_rect, right_rect, self.camera, self.extractor,
                       self.extractor_right, th_depth_factor=self.p["th_depth"])
         frame.n_primary = getattr(self.extractor, "n_primary", frame.N)   # low-texture test
-        frame.right_image = right_rect   # optical-flow stereo of tracked keypoints
         t_frame = 1000.0 * (time.perf_counter() - t0)
         out = self.tracking.track(frame)
         if out["is_keyframe"] and self.loop_closing is not None:   # proximity loop path

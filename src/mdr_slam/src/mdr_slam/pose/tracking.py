@@ -359,7 +359,7 @@ class Tracking:
         d_pred = frame.bf / z
         ur = -np.ones(len(sel), np.float32)
         depth = -np.ones(len(sel), np.float32)
-        right = getattr(frame, "right_image", None)
+        right = frame.right_image
         if right is not None:
             q0 = p1.astype(np.float32)
             q1 = q0.copy()
@@ -385,7 +385,7 @@ class Tracking:
         corners, and the map points keep being observed instead of being replaced every frame."""
         import cv2
         last = self.last_frame
-        if last is None or last.T_cw is None or getattr(last, "image", None) is None:
+        if last is None or last.T_cw is None:
             return False
         self._update_last_frame()
         sel = np.nonzero(last.mp_ids >= 0)[0]
