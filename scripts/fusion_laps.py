@@ -72,6 +72,8 @@ def main():
                     help="stamps jump back each lap (a looping bag) instead of increasing")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--save", default="", help="write the final map here (PLY/PCD, VoxelMap.save)")
+    ap.add_argument("--minutes", type=float, default=0.0,
+                    help="stop after the lap that ends past this wall-clock budget (0 = run all laps)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="VoxelMap parameter over config/fusion.yaml (repeatable)")
     args = ap.parse_args()
@@ -98,8 +100,12 @@ def main():
                                                           "min_view_ratio", "view_window")},
           "sets:", args.set)
     rng = np.random.default_rng(args.seed)
-    print("%4s %8s %8s %8s %8s %9s %9s %8s %8s %8s" % ("lap", "points", "conf>=3", "removed", "folded", "rmse mm",
-                                                  "compl %", "acc %", "med ms", "cpu ms"))
+    print("%4s %8s %8s %8s %8s %9s %9s %8s %8s %8s %8s" % ("lap", "points", "conf>=3", "removed", "folded",
+                                                       "rmse mm", "compl %", "acc %", "med ms", "cpu ms",
+                                                       "rss MB"))
+    import psutil
+    proc = psutil.Process()
+    t_start = time.time()
     ms_all = []
     for lap in range(args.laps):
         npass = int(laps_src.max()) + 1
@@ -117,13 +123,16 @@ def main():
         cpu = 1e3 * (time.process_time() - t_lap) / max(1, len(src))
         ms_all += ms
         mm = map_metrics(m.points(0), gt, threshold=0.05)
-        print("%4d %8d %8d %8d %8d %9.1f %9.1f %8.1f %8.1f %8.1f" % (
+        print("%4d %8d %8d %8d %8d %9.1f %9.1f %8.1f %8.1f %8.1f %8.1f" % (
             lap + 1, len(m), len(m.points(m.min_confidence)), m.n_removed,
             getattr(m, "n_duplicates", 0),
             1e3 * mm["accuracy_rmse"], 100 * mm["completeness"], 100 * mm["accuracy"],
-            np.median(ms), cpu), flush=True)
+            np.median(ms), cpu, proc.memory_info().rss / 2**20), flush=True)
         if lap == 0:
             lap1_end = float(d["stamps"][src].max()) + (0.0 if args.wrap else 0.0)
+        if args.minutes > 0 and time.time() - t_start > 60 * args.minutes:
+            print("stopped after lap %d: %.1f min budget" % (lap + 1, args.minutes))
+            break
     print("integration over all laps: median %.1f ms, p90 %.1f ms (wall)" % (
         np.median(ms_all), np.percentile(ms_all, 90)))
     print("removed at the end of view_window (view ratio): %d" % getattr(m, "n_view_removed", 0))

@@ -325,3 +325,53 @@ def test_pose_node_orb_bad_images_and_info(rospy_client, start_process):
         assert what in out, (what, out)
     assert "Traceback" not in out, out
     sub.unregister()
+
+
+@pytest.mark.ros
+def test_depth_node_skips_pairs_whose_pose_is_nan_infinite_or_a_zero_quaternion(rospy_client,
+                                                                                start_process):
+    """The depth node's own pose input (pose topic mode): a NaN, infinite or zero-quaternion pose is
+    refused with a log line, its image pair gets no pose and is skipped (nothing published, no
+    NaN cloud), and the next valid pose + pair is processed. (tf mode: tf2 itself refuses NaN
+    transforms, see test_fusion_node_bad_poses_clouds_and_stamps.)"""
+    rospy = rospy_client
+    from test_depth_node import _pair, _pose_topic_rig
+    node, got, sub, pose_pub, sp = _pose_topic_rig(rospy, start_process, "depth_bad_pose", "/bi_dp/",
+                                                   "/mdr/depth/points:=/bi_dp/points",
+                                                   points="/bi_dp/points")
+    left, right = _pair()
+    base = rospy.Time.now()
+
+    def send(t, x=0.0, qw=1.0, expect=True):
+        stamp = base + rospy.Duration(t)
+        m = cv.matrix_to_pose_stamped(np.eye(4), stamp, "map")
+        m.pose.position.x, m.pose.orientation.w = x, qw
+        pose_pub.publish(m)
+        rospy.sleep(0.05)
+        n = len(got)
+        sp.publish(stamp, left, right)
+        if expect:   # a valid pair (rarely the worker drops one; the last one is checked below)
+            wait_for(lambda: len(got) > n, 15)
+        else:        # poses 2 s apart: nothing to interpolate the bad one's stamp from
+            rospy.sleep(0.6)
+            assert len(got) == n, "the pair of a bad pose at %.1f s was published" % t
+
+    for i in range(4):
+        send(0.1 * i)
+    send(2.0, x=np.nan, expect=False)
+    send(4.0, x=np.inf, expect=False)
+    send(6.0, qw=0.0, expect=False)
+    for i in range(4):   # after the gap the filter confirms points again over a few pairs
+        send(8.0 + 0.1 * i)
+    assert node.proc.poll() is None, node.output()
+    published = [m.header.stamp for m in got]
+    assert base + rospy.Duration(8.3) in published, node.output()
+    for m in got:
+        a = cv.pointcloud2_to_arrays(m)
+        assert all(np.all(np.isfinite(a[k])) for k in "xyz")
+    assert len(cv.pointcloud2_to_arrays(got[-1])["z"]) > 0.3 * W * H, node.output()
+    out = node.output()
+    for what in ("pose skipped: pose has non-finite values", "pose quaternion is zero", "no pose at"):
+        assert what in out, (what, out)
+    assert "Traceback" not in out, out
+    sub.unregister()
