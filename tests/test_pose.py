@@ -492,6 +492,36 @@ def test_global_ba_closes_drifted_loop():
     assert mp.keyframes[0].T_cw == pytest.approx(true_cw[0])   # the first keyframe holds
 
 
+def test_global_ba_holds_keyframes_with_too_few_points():
+    """A keyframe that kept 2 of its points (office_loop seed 1: point-poor keyframes at the loop
+    junction, one of which the global BA sent 3 km off) is left out of the solve by
+    ``min_kf_points`` and follows its parent; the others still close the loop. With the guard
+    off it is optimised from its 2 points and ends farther off than its neighbours."""
+    from mdr_slam.pose.optimizer import global_bundle_adjustment
+
+    def weak_map():
+        mp, true_cw = _loop_map()
+        kf = mp.keyframes[12]
+        obs = np.nonzero(kf.mp_ids >= 0)[0]
+        mp.erase_observations(kf, obs[2:])
+        return mp, true_cw, kf.T_cw.copy()
+    mp, true_cw, T12 = weak_map()
+    T11 = mp.keyframes[11].T_cw.copy()
+    def err(mp):
+        return np.array([np.linalg.norm(mp.keyframes[k].T_wc[:3, 3] - inv_T(true_cw[k])[:3, 3])
+                         for k in sorted(mp.keyframes)])
+    res = global_bundle_adjustment(mp, iterations=10, min_kf_points=20)
+    assert res["followers"] == 1 and res["keyframes"] == 23
+    e = err(mp)
+    assert e.max() < 0.06, e   # measured 0.04; kf 12 follows kf 11
+    parent = mp.keyframes[11]
+    assert (mp.keyframes[12].T_cw @ parent.T_wc) == pytest.approx(T12 @ inv_T(T11), abs=1e-9)
+    mp, _, _ = weak_map()
+    res = global_bundle_adjustment(mp, iterations=10)
+    assert res["followers"] == 0
+    assert err(mp)[12] > 0.15   # measured 0.27 (its neighbours 0.04)
+
+
 def test_sparse_bundle_adjust_matches_dense():
     """The global (sparse Schur) solver takes the same steps as the local (dense) one."""
     from mdr_slam.pose.optimizer import bundle_adjust_sparse

@@ -204,6 +204,7 @@ class LoopClosing:
         t0 = time.perf_counter()
         res = global_bundle_adjustment(   # the first keyframe holds the map frame (ORB-SLAM2)
             self.map, iterations=int(self.p.get("global_ba_iterations", 20)),
+            min_kf_points=int(self.p.get("global_ba_min_kf_points", 20)),
             abort=self._gba_abort if self.system.threads else None,
             lock_solve=not self.system.threads)
         res["ms"] = 1000.0 * (time.perf_counter() - t0)

@@ -622,13 +622,17 @@ def bundle_adjust_sparse(Ts: np.ndarray, fixed: np.ndarray, P: np.ndarray, cam_i
 
 def global_bundle_adjustment(map_, iterations: int = 10, fixed_id: Optional[int] = None,
                              abort=None, lock_solve: bool = True,
-                             min_observers: int = 2) -> Dict[str, object]:
+                             min_observers: int = 2, min_kf_points: int = 0) -> Dict[str, object]:
     """ORB-SLAM2 RunGlobalBundleAdjustment: every live keyframe and map point optimised together
     (the first keyframe, or ``fixed_id``, held), then the result written back. Keyframes and
     points created while the solver ran (``lock_solve=False``: the map lock is released during
     the solve, so tracking goes on) follow their spanning-tree ancestor / reference keyframe, as
     ORB-SLAM2 propagates the GBA correction. Observations that are outliers after the solve are
-    erased. Returns {"moved": kf ids, "outliers": n, "keyframes": n, "points": n}."""
+    erased. Keyframes observing fewer than ``min_kf_points`` of the optimised points are left
+    out of the solve and follow their ancestor like those added meanwhile: a pose over a handful
+    of points is unconstrained (on office_loop seed 1 such a keyframe at the loop junction went
+    3 km off and the solve took 36 s), and holding it instead lets its few points bend the loop.
+    Returns {"moved": kf ids, "outliers": n, "keyframes": n, "points": n, "followers": n}."""
     with map_.lock:
         kfs = sorted(map_.good_keyframes(), key=lambda k: k.id)
         if len(kfs) < 2:
@@ -645,6 +649,19 @@ def global_bundle_adjustment(map_, iterations: int = 10, fixed_id: Optional[int]
         # points seen by at least min_observers keyframes constrain poses; the rest follow
         cnt = np.bincount(all_ids, minlength=n_pts)
         pts = np.nonzero(cnt >= max(2, int(min_observers)))[0]
+        n_follow = 0
+        if min_kf_points > 0:
+            has = np.zeros(n_pts, dtype=bool)
+            has[pts] = True
+            strong = [c for c, (k, _, ids) in enumerate(obs_list)
+                      if k.id == fid or np.count_nonzero(has[ids]) >= min_kf_points]
+            n_follow = len(kfs) - len(strong)
+            if n_follow:   # out of the solve; they follow their ancestor below
+                kfs = [kfs[c] for c in strong]
+                obs_list = [obs_list[c] for c in strong]
+                all_ids = np.concatenate([m for _, _, m in obs_list])
+                cnt = np.bincount(all_ids, minlength=n_pts)
+                pts = np.nonzero(cnt >= max(2, int(min_observers)))[0]
         lookup = np.full(n_pts, -1, dtype=np.int64)
         lookup[pts] = np.arange(len(pts))
         cam_l, pt_l, uv_l, ur_l, inf_l, kp_l = [], [], [], [], [], []
@@ -687,6 +704,7 @@ def global_bundle_adjustment(map_, iterations: int = 10, fixed_id: Optional[int]
         # correction of each optimised keyframe, in world: C = T_wc_new T_cw_used
         # keyframes added meanwhile follow their nearest optimised ancestor
         moved = []
+        follow_C = {}
         for k in map_.good_keyframes():
             if k.id in new_cw:
                 continue
@@ -697,6 +715,7 @@ def global_bundle_adjustment(map_, iterations: int = 10, fixed_id: Optional[int]
                 continue
             C = inv_T(new_cw[a.id]) @ T_used[a.id]
             k.set_pose(k.T_cw @ inv_T(C))
+            follow_C[k.id] = C
             moved.append(k.id)
         # points: optimised ones take the solution; the others follow their reference keyframe
         alive = ~map_.mp_bad[pts]
@@ -706,10 +725,10 @@ def global_bundle_adjustment(map_, iterations: int = 10, fixed_id: Optional[int]
         if len(rest):
             ref = map_.mp_ref_kf[rest]
             for kid in np.unique(ref).tolist():
-                if kid not in new_cw:
+                if kid not in new_cw and kid not in follow_C:
                     continue
                 sel = rest[ref == kid]
-                C = inv_T(new_cw[kid]) @ T_used[kid]
+                C = inv_T(new_cw[kid]) @ T_used[kid] if kid in new_cw else follow_C[kid]
                 map_.mp_pos[sel] = map_.mp_pos[sel] @ C[:3, :3].T + C[:3, 3]
         for c, k in enumerate(kfs):
             if not k.bad:
@@ -731,4 +750,5 @@ def global_bundle_adjustment(map_, iterations: int = 10, fixed_id: Optional[int]
                 map_.erase_observations(k, kp[same])
         live = np.nonzero(~map_.mp_bad[: map_.n])[0]
         map_.update_normal_and_depth(live)
-    return {"moved": sorted(moved), "outliers": n_out, "keyframes": len(kfs), "points": len(pts)}
+    return {"moved": sorted(moved), "outliers": n_out, "keyframes": len(kfs), "points": len(pts),
+            "followers": n_follow}

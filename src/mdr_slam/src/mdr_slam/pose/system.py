@@ -53,6 +53,7 @@ DEFAULT_PARAMS = {
     "loop_consistency": 2,       # consecutive keyframes a loop candidate must recur (ORB-SLAM2: 3)
     "global_ba": True,           # global bundle adjustment after each loop correction
     "global_ba_iterations": 20,
+    "global_ba_min_kf_points": 20,   # keyframes seeing fewer points follow their parent in the global BA
     "pose_graph_weights": True,  # loop pose graph: edge information from shared points
     "loop_min_age": 3.0,         # s; younger keyframes are never loop candidates
     "loop_max_drift": 0.3,       # a loop may move the keyframe <= this x the path since the match
