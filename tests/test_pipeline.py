@@ -201,6 +201,9 @@ def test_bench_live_measures_the_running_nodes(small_sim, tmp_path):
               "latency_ms", "cpu_percent", "rss_mb"):
         assert k in b, k
     assert b["pose_hz"] > 5 and b["depth_hz"] > 0.5, b
+    # where the clouds went: published, empty (nothing converged), reaching the fusion node, fused
+    assert 0 <= b["depth_clouds_empty"] < b["depth_clouds"], b
+    assert 0 < b["clouds_integrated"] <= b["clouds_received_by_fusion"], b
     assert b["frames_tracked"] > 100 and b["frames_in"] > 20, b
     # live ATE of /mdr/pose against the bag's ground truth: the relayed ground truth itself
     assert b["live_ate"]["n"] > 100 and b["live_ate"]["rmse_m"] < 0.005, b["live_ate"]

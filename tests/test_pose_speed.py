@@ -212,6 +212,28 @@ def test_ba_worker_process_matches_in_thread_and_recovers():
     assert proc.poll() is not None
 
 
+def test_global_ba_in_a_worker_process_matches_in_thread():
+    """LoopClosing's global BA solved in a BAWorker child (threads: the solver's long numpy/scipy
+    steps then never hold the tracking thread's GIL) writes back the same map."""
+    from mdr_slam.pose.optimizer import BAWorker, global_bundle_adjustment
+    from test_pose import _loop_map
+    ref, _ = _loop_map()
+    got, _ = _loop_map()
+    r_ref = global_bundle_adjustment(ref, iterations=6)
+    w = BAWorker()
+    try:
+        r_got = global_bundle_adjustment(got, iterations=6, worker=w)
+        assert not w.failed and w._proc is not None   # it really ran in the child
+    finally:
+        proc = w._proc
+        w.close()
+    assert proc.poll() is not None
+    assert r_got["moved"] == r_ref["moved"] and r_got["outliers"] == r_ref["outliers"]
+    for k in ref.keyframes:
+        np.testing.assert_allclose(got.keyframes[k].T_cw, ref.keyframes[k].T_cw, atol=1e-9)
+    np.testing.assert_allclose(got.mp_pos[: got.n], ref.mp_pos[: ref.n], atol=1e-7)
+
+
 def _orbit_system(n, params=None):
     """A System (synchronous mapping) that tracked the first ``n`` frames of a 28-frame quarter
     orbit in the textured box room (0.05 s apart), with the poses and images of all 28."""

@@ -109,6 +109,7 @@ class _Listener:
         self.t_pose: List[float] = []       # wall receipt times, for rates over the active window
         self.poses: List[tuple] = []        # (stamp, T_map_cam) as published: the live trajectory
         self.t_depth: List[float] = []
+        self.n_depth_empty = 0
         self.integrated: List[tuple] = []   # (wall time, fusion's "clouds integrated")
         self.map_points: List[tuple] = []   # (wall time, fusion's "map points")
         self.subs = [
@@ -136,6 +137,7 @@ class _Listener:
         lat = (rospy.Time.now() - msg.header.stamp).to_sec()
         with self.lock:
             self.n_depth += 1
+            self.n_depth_empty += int(msg.width * msg.height == 0)
             self.t_depth.append(time.time())
             if 0 <= lat < 60:
                 self.depth_latency_s.append(lat)
@@ -427,6 +429,10 @@ def _summarize(args, bag, lst: "_Listener", samples, elapsed, pose_source) -> di
     r["depth_hz"] = round(_rate(lst.t_depth), 2)
     r["map_integration_hz"] = round(_integration_rate(lst.integrated), 2)
     r["clouds_integrated"] = int(integrated) if integrated is not None else None
+    received_f = fdiag("fusion", "clouds received")
+    r["clouds_received_by_fusion"] = int(received_f) if received_f is not None else None
+    r["depth_clouds"] = int(lst.n_depth)             # as received by the benchmark's subscriber
+    r["depth_clouds_empty"] = int(lst.n_depth_empty)  # nothing converged yet (blank walls)
     r["latency_ms"] = {k: (None if v is None else round(1e3 * v, 1))
                        for k, v in _stats(lst.latency_s).items()}
     r["depth_latency_ms"] = {k: (None if v is None else round(1e3 * v, 1))
@@ -493,6 +499,9 @@ def _report_md(r) -> str:
              "| map integrations per second | %s Hz |" % r["map_integration_hz"],
              "| depth clouds per second | %s Hz |" % r["depth_hz"],
              "| poses per second | %s Hz |" % r["pose_hz"],
+             "| depth clouds (empty: nothing converged) / received by fusion / integrated | "
+             "%s (%s) / %s / %s |" % (r["depth_clouds"], r["depth_clouds_empty"],
+                                      r["clouds_received_by_fusion"], r["clouds_integrated"]),
              "| stereo pairs received by depth / in the bag | %s / %s |" % (r["frames_in"],
                                                                           r["frames_in_bag"]),
              "| frames tracked | %s |" % r["frames_tracked"],

@@ -46,6 +46,8 @@ DEFAULTS = {
     "tf_timeout": 0.1,              # s to wait for the transform at the cloud's stamp
     "sync_slop": 0.05,              # s, ApproximateTime slop for pose_source=topic
     "sync_queue": 30,
+    "cloud_queue": 10,              # clouds waiting while the node is busy (a keyframe correction,
+                                    #   a map publish); older ones are dropped by rospy
     "anchor_keyframes": True,       # anchor points to keyframes so corrections move them
     # VoxelMap
     "voxel_size": 0.02,
@@ -124,6 +126,7 @@ class FusionNode:
         self.kf_poses = {}
         self.views = []                      # camera poses for mesh export (subsampled)
         self.n_integrated = 0
+        self.n_received = 0                  # clouds that reached integrate() (the rest: queue drops)
         self.rate_window = []                # wall times of recent integrations
         self.last_latency = float("nan")
         self.last_proc = float("nan")
@@ -162,8 +165,8 @@ class FusionNode:
         if p["pose_source"] == "topic":
             import message_filters
             from geometry_msgs.msg import PoseStamped
-            self.sub_cloud = message_filters.Subscriber(p["cloud_topic"], PointCloud2, queue_size=5,
-                                                        buff_size=big)
+            self.sub_cloud = message_filters.Subscriber(p["cloud_topic"], PointCloud2,
+                                                        queue_size=p["cloud_queue"], buff_size=big)
             self.sub_pose = message_filters.Subscriber(p["pose_topic"], PoseStamped, queue_size=50)
             self.sync = message_filters.ApproximateTimeSynchronizer(
                 [self.sub_cloud, self.sub_pose], p["sync_queue"], p["sync_slop"])
@@ -172,7 +175,7 @@ class FusionNode:
             if p["pose_source"] != "tf":
                 rospy.logwarn("fusion_node: unknown pose_source %r, using tf", p["pose_source"])
             self.sub_cloud = rospy.Subscriber(p["cloud_topic"], PointCloud2, self.on_cloud,
-                                              queue_size=2, buff_size=big)
+                                              queue_size=p["cloud_queue"], buff_size=big)
         self.sub_kf = rospy.Subscriber(p["keyframes_topic"], KeyFrameArray, self.on_keyframes,
                                        queue_size=20)
         if p["tracking_state_topic"]:
@@ -281,6 +284,7 @@ class FusionNode:
         import rospy
         from ..conversions import pointcloud2_to_arrays, ConversionError
         t0 = time.monotonic()
+        self.n_received += 1
         stamp = msg.header.stamp.to_sec()
         try:
             arr = pointcloud2_to_arrays(msg)
@@ -446,6 +450,7 @@ class FusionNode:
         stat.add("last latency stamp->map (s)", "%.3f" % self.last_latency)
         stat.add("map points", str(n))
         stat.add("clouds integrated", str(self.n_integrated))
+        stat.add("clouds received", str(self.n_received))
         stat.add("points removed by cleaning", str(self.map.n_removed))
         rss = self.health.rss_mb()
         stat.add("process RSS (MB)", "%.1f" % rss)
