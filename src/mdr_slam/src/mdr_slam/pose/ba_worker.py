@@ -1,7 +1,9 @@
-"""Child process that solves local bundle adjustments for LocalMapping (see optimizer.BAWorker).
+"""Child process that solves bundle adjustments for LocalMapping and LoopClosing (see
+optimizer.BAWorker).
 
-Protocol on its stdin/stdout: the parent writes pickled ``(args, kwargs)`` of
-``optimizer.bundle_adjust``; the child answers the pickled ``(Ts, P)`` or an ``Exception``. SIGUSR1
+Protocol on its stdin/stdout: the parent writes pickled ``(name, args, kwargs)``, name one of
+``bundle_adjust`` (local BA) and ``bundle_adjust_sparse`` (global BA) of ``optimizer``; the child
+answers the pickled result or an ``Exception``. SIGUSR1
 asks the solve in progress to stop after the current iteration (ORB-SLAM2's abort when a new
 keyframe arrives). It is a plain ``python -m`` process, not multiprocessing, so the parent's main
 script is never re-imported in the child. EOF on stdin (the parent is gone) ends it.
@@ -15,10 +17,14 @@ import sys
 
 
 def main() -> int:
+    nice = int(os.environ.get("MDR_BA_NICE", "0") or 0)
+    if nice > 0:
+        os.nice(nice)                  # lower priority than the tracking process (BAWorker(nice))
     out = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)                      # stray prints/warnings go to stderr, not into the protocol
     inp = os.fdopen(os.dup(0), "rb")
-    from mdr_slam.pose.optimizer import bundle_adjust
+    from mdr_slam.pose.optimizer import bundle_adjust, bundle_adjust_sparse
+    solvers = {"bundle_adjust": bundle_adjust, "bundle_adjust_sparse": bundle_adjust_sparse}
     flag = {"abort": False}
 
     def on_abort(signum, frame):
@@ -30,14 +36,14 @@ def main() -> int:
     out.flush()
     while True:
         try:
-            args, kwargs = pickle.load(inp)
+            name, args, kwargs = pickle.load(inp)
         except (EOFError, OSError):
             return 0
         flag["abort"] = False
         try:
-            res = bundle_adjust(*args, abort=lambda: flag["abort"], **kwargs)
+            res = solvers[name](*args, abort=lambda: flag["abort"], **kwargs)
         except Exception as exc:       # noqa: BLE001 - reported to the parent, which falls back
-            res = RuntimeError("bundle_adjust failed in the BA worker: %r" % (exc,))
+            res = RuntimeError("%s failed in the BA worker: %r" % (name, exc))
         pickle.dump(res, out, protocol=pickle.HIGHEST_PROTOCOL)
         out.flush()
 

@@ -202,12 +202,23 @@ class LoopClosing:
         import time
         from .optimizer import global_bundle_adjustment
         t0 = time.perf_counter()
-        res = global_bundle_adjustment(   # the first keyframe holds the map frame (ORB-SLAM2)
-            self.map, iterations=int(self.p.get("global_ba_iterations", 20)),
-            min_kf_points=int(self.p.get("global_ba_min_kf_points", 20)),
-            abort=self._gba_abort if self.system.threads else None,
-            lock_solve=not self.system.threads)
+        worker = None
+        if self.system.threads and self.p.get("global_ba_process", True):
+            # a child process per global BA (they are rare: its ~60 MB are not kept); in this
+            # thread the solver's long numpy/scipy steps stalled tracking (frames dropped live)
+            from .optimizer import BAWorker
+            worker = BAWorker(nice=int(self.p.get("global_ba_nice", 10)))
+        try:
+            res = global_bundle_adjustment(   # the first keyframe holds the map frame (ORB-SLAM2)
+                self.map, iterations=int(self.p.get("global_ba_iterations", 20)),
+                min_kf_points=int(self.p.get("global_ba_min_kf_points", 20)),
+                abort=self._gba_abort if self.system.threads else None,
+                lock_solve=not self.system.threads, worker=worker)
+        finally:
+            if worker is not None:
+                worker.close()
         res["ms"] = 1000.0 * (time.perf_counter() - t0)
+        res["process"] = worker is not None and not worker.failed
         self.global_ba_runs.append(res)
         with self.map.lock:
             self.corrections.append(("loop_closure", {k: self.map.keyframes[k].T_cw.copy()

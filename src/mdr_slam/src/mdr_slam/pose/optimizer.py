@@ -287,7 +287,8 @@ def _exp_se3_left(dx: np.ndarray, T: np.ndarray) -> np.ndarray:
 
 
 class BAWorker:
-    """Solves local bundle adjustments in one child process (``python -m mdr_slam.pose.ba_worker``).
+    """Solves bundle adjustments in one child process (``python -m mdr_slam.pose.ba_worker``):
+    LocalMapping's local BA (``ba_process``) and LoopClosing's global BA (``global_ba_process``).
 
     Measured on this 2-core machine under heavy load (load average 8-10; KITTI clip, a captured
     local BA solved in a loop next to tracking): in a thread the GIL throttles the BA to ~1.2
@@ -301,8 +302,9 @@ class BAWorker:
     the calling thread for good (logged once).
     """
 
-    def __init__(self):
+    def __init__(self, nice: int = 0):
         import threading
+        self.nice = int(nice)   # the child's nice increment (> 0: it yields the CPU to tracking)
         self._proc = None
         self._lock = threading.Lock()
         self.failed = False
@@ -314,6 +316,7 @@ class BAWorker:
             env["PYTHONPATH"] = os.pathsep.join([p for p in sys.path if p] +
                                                 [env.get("PYTHONPATH", "")])
             env.setdefault("OPENBLAS_NUM_THREADS", "1")   # one core's worth, no BLAS spinning
+            env["MDR_BA_NICE"] = str(max(0, self.nice))
             self._proc = subprocess.Popen([sys.executable, "-m", "mdr_slam.pose.ba_worker"],
                                           stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env)
             self._ready = False
@@ -341,7 +344,9 @@ class BAWorker:
             proc.kill()
             proc.wait()
 
-    def run(self, args: tuple, kwargs: dict, abort=None):
+    def run(self, args: tuple, kwargs: dict, abort=None, solver: str = "bundle_adjust"):
+        """``optimizer.<solver>(*args, abort=abort, **kwargs)`` solved in the child (``solver``:
+        bundle_adjust or bundle_adjust_sparse); in this thread if the child cannot run."""
         import pickle
         import select
         import signal
@@ -353,7 +358,8 @@ class BAWorker:
                         if proc.stdout.read(1) != b"R":
                             raise RuntimeError("BA worker did not start")
                         self._ready = True
-                    pickle.dump((args, kwargs), proc.stdin, protocol=pickle.HIGHEST_PROTOCOL)
+                    pickle.dump((solver, args, kwargs), proc.stdin,
+                                protocol=pickle.HIGHEST_PROTOCOL)
                     proc.stdin.flush()
                     aborted = False
                     while not select.select([proc.stdout], [], [], 0.005)[0]:
@@ -366,7 +372,8 @@ class BAWorker:
                     return res
                 except Exception as exc:   # noqa: BLE001 - dead child, broken pipe, ...
                     self._fail(exc)
-        return bundle_adjust(*args, abort=abort, **kwargs)
+        fn = bundle_adjust_sparse if solver == "bundle_adjust_sparse" else bundle_adjust
+        return fn(*args, abort=abort, **kwargs)
 
     def close(self) -> None:
         with self._lock:
@@ -622,7 +629,8 @@ def bundle_adjust_sparse(Ts: np.ndarray, fixed: np.ndarray, P: np.ndarray, cam_i
 
 def global_bundle_adjustment(map_, iterations: int = 10, fixed_id: Optional[int] = None,
                              abort=None, lock_solve: bool = True,
-                             min_observers: int = 2, min_kf_points: int = 0) -> Dict[str, object]:
+                             min_observers: int = 2, min_kf_points: int = 0,
+                             worker=None) -> Dict[str, object]:
     """ORB-SLAM2 RunGlobalBundleAdjustment: every live keyframe and map point optimised together
     (the first keyframe, or ``fixed_id``, held), then the result written back. Keyframes and
     points created while the solver ran (``lock_solve=False``: the map lock is released during
@@ -632,6 +640,8 @@ def global_bundle_adjustment(map_, iterations: int = 10, fixed_id: Optional[int]
     out of the solve and follow their ancestor like those added meanwhile: a pose over a handful
     of points is unconstrained (on office_loop seed 1 such a keyframe at the loop junction went
     3 km off and the solve took 36 s), and holding it instead lets its few points bend the loop.
+    ``worker`` (a :class:`BAWorker`) solves in a child process: its numpy/scipy steps,
+    some of which hold the GIL for tens of milliseconds, then never stall the tracking thread.
     Returns {"moved": kf ids, "outliers": n, "keyframes": n, "points": n, "followers": n}."""
     with map_.lock:
         kfs = sorted(map_.good_keyframes(), key=lambda k: k.id)
@@ -691,8 +701,11 @@ def global_bundle_adjustment(map_, iterations: int = 10, fixed_id: Optional[int]
     fixed = np.array([k.id == fid for k in kfs])
 
     def solve():
-        return bundle_adjust_sparse(Ts, fixed, P0, cam_idx, pt_idx, obs, stereo, info, intr,
-                                    iterations=iterations, abort=abort)
+        args = (Ts, fixed, P0, cam_idx, pt_idx, obs, stereo, info, intr)
+        if worker is not None:
+            return worker.run(args, {"iterations": iterations}, abort=abort,
+                              solver="bundle_adjust_sparse")
+        return bundle_adjust_sparse(*args, iterations=iterations, abort=abort)
     if lock_solve:
         with map_.lock:
             Ts_new, P_new, inlier = solve()

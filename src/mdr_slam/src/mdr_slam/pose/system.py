@@ -54,6 +54,8 @@ DEFAULT_PARAMS = {
     "global_ba": True,           # global bundle adjustment after each loop correction
     "global_ba_iterations": 20,
     "global_ba_min_kf_points": 20,   # keyframes seeing fewer points follow their parent in the global BA
+    "global_ba_process": True,   # threads: the global BA solved in a child process (GIL)
+    "global_ba_nice": 10,        # ... at this nice increment (it yields the CPU to tracking)
     "pose_graph_weights": True,  # loop pose graph: edge information from shared points
     "loop_min_age": 3.0,         # s; younger keyframes are never loop candidates
     "loop_max_drift": 0.3,       # a loop may move the keyframe <= this x the path since the match
