@@ -375,3 +375,23 @@ def test_depth_node_skips_pairs_whose_pose_is_nan_infinite_or_a_zero_quaternion(
         assert what in out, (what, out)
     assert "Traceback" not in out, out
     sub.unregister()
+
+
+def test_bad_input_logs_are_throttled_per_kind_and_wording(monkeypatch):
+    """Issue 8 item 3: a flood of bad input gives one log line per kind and wording per period (the
+    numbers in it aside), with the running count, and a different problem is still reported."""
+    import time as _time
+    import rospy
+    from mdr_slam.nodes.common import Throttled
+    lines = []
+    monkeypatch.setattr(rospy, "logwarn", lambda fmt, *a: lines.append(fmt % a))
+    warn = Throttled(period=0.2)
+    for i in range(200):   # 20 Hz of truncated images for 10 s, as fast as it comes
+        warn("img", "image skipped: data has %d bytes, expected 360960" % (1000 + i))
+    assert len(lines) == 1 and lines[0].startswith("image skipped: data has 1000 bytes"), lines
+    warn("img", "image skipped: encoding 'rgb8' is not mono8")   # same kind, another problem
+    assert len(lines) == 2 and "encoding" in lines[1], lines
+    _time.sleep(0.25)
+    warn("img", "image skipped: data has 7 bytes, expected 360960")
+    assert len(lines) == 3 and lines[2].endswith("(202 times so far)"), lines
+    assert warn.counts["img"] == 202
