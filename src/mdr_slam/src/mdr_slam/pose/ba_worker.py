@@ -1,11 +1,10 @@
 """Child process that solves bundle adjustments for LocalMapping and LoopClosing (see
 optimizer.BAWorker).
 
-Protocol on its stdin/stdout: the parent writes pickled ``(name, args, kwargs)``, name one of
-``bundle_adjust`` (local BA) and ``bundle_adjust_sparse`` (global BA) of ``optimizer``; the child
-answers the pickled result or an ``Exception``. SIGUSR1
-asks the solve in progress to stop after the current iteration (ORB-SLAM2's abort when a new
-keyframe arrives). It is a plain ``python -m`` process, not multiprocessing, so the parent's main
+Protocol on its stdin/stdout: the parent writes pickled ``(name, args, kwargs)``, name a key of
+``optimizer.BA_SOLVERS`` (``bundle_adjust``: local BA, ``bundle_adjust_sparse``: global BA); the
+child answers the pickled result or an ``Exception``. SIGUSR1 asks the solve in progress to stop
+after the current iteration (ORB-SLAM2's abort when a new keyframe arrives). It is a plain ``python -m`` process, not multiprocessing, so the parent's main
 script is never re-imported in the child. EOF on stdin (the parent is gone) ends it.
 """
 from __future__ import annotations
@@ -23,8 +22,7 @@ def main() -> int:
     out = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)                      # stray prints/warnings go to stderr, not into the protocol
     inp = os.fdopen(os.dup(0), "rb")
-    from mdr_slam.pose.optimizer import bundle_adjust, bundle_adjust_sparse
-    solvers = {"bundle_adjust": bundle_adjust, "bundle_adjust_sparse": bundle_adjust_sparse}
+    from mdr_slam.pose.optimizer import BA_SOLVERS
     flag = {"abort": False}
 
     def on_abort(signum, frame):
@@ -41,7 +39,7 @@ def main() -> int:
             return 0
         flag["abort"] = False
         try:
-            res = solvers[name](*args, abort=lambda: flag["abort"], **kwargs)
+            res = BA_SOLVERS[name](*args, abort=lambda: flag["abort"], **kwargs)
         except Exception as exc:       # noqa: BLE001 - reported to the parent, which falls back
             res = RuntimeError("%s failed in the BA worker: %r" % (name, exc))
         pickle.dump(res, out, protocol=pickle.HIGHEST_PROTOCOL)

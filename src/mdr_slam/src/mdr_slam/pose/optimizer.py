@@ -372,8 +372,7 @@ class BAWorker:
                     return res
                 except Exception as exc:   # noqa: BLE001 - dead child, broken pipe, ...
                     self._fail(exc)
-        fn = bundle_adjust_sparse if solver == "bundle_adjust_sparse" else bundle_adjust
-        return fn(*args, abort=abort, **kwargs)
+        return BA_SOLVERS[solver](*args, abort=abort, **kwargs)
 
     def close(self) -> None:
         with self._lock:
@@ -625,6 +624,10 @@ def bundle_adjust_sparse(Ts: np.ndarray, fixed: np.ndarray, P: np.ndarray, cam_i
     _, chi2 = _huber_cost(e, info, np.sqrt(chi2_th), active)
     inlier = active & (chi2 <= chi2_th) & (Pc[:, 2] > 0)
     return Ts, P, inlier
+
+
+# what a BAWorker child can solve (ba_worker.py looks the name up here too)
+BA_SOLVERS = {"bundle_adjust": bundle_adjust, "bundle_adjust_sparse": bundle_adjust_sparse}
 
 
 def global_bundle_adjustment(map_, iterations: int = 10, fixed_id: Optional[int] = None,
