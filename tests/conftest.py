@@ -31,6 +31,18 @@ def root_dir():
     return ROOT
 
 
+@pytest.fixture(scope="session")
+def sample_bag(tmp_path_factory):
+    """The README demo's sample bag itself (office loop, 752x480, 20 Hz, 30 s, 600 stereo pairs),
+    rendered once per test session exactly as ``mdr demo`` does (``mdr sim --scene office
+    --duration 30``: the same bytes as output/sample/sequence.bag; ~30 s on two cores). Returns the
+    directory (sequence.bag, groundtruth.tum, gt_map.ply, scene.yaml)."""
+    from mdr_slam.sim import generate
+    d = str(tmp_path_factory.mktemp("sample"))
+    generate(d, scene="office", duration=30.0)
+    return d
+
+
 def _free_port() -> int:
     s = socket.socket()
     s.bind(("127.0.0.1", 0))

@@ -226,6 +226,25 @@ def test_lost_frame_recovered_by_coasting_on_the_motion_model(sequence):
     s.shutdown()
 
 
+def test_frames_made_ahead_track_exactly_like_frames_made_in_track(sequence):
+    """The pose node's pipeline (pipeline_frames): make_frame reads no map, so frames made before
+    any of them is tracked give the same poses as track(stamp, left, right) making each itself."""
+    poses, images = sequence
+    images = images[:12]
+    ref, res_ref = _run(images, threads=False)
+    s = System(CAM, threads=False)
+    frames = [s.make_frame(0.05 * i, l, r) for i, (l, r) in enumerate(images)]
+    assert len(s.map.keyframes) == 0 and s.tracking.state == "NOT_INITIALIZED"
+    assert all(f.build_ms > 0 and f.N > 100 for f in frames)
+    res = [s.track(f.stamp, frame=f) for f in frames]
+    s.shutdown()
+    assert [r.state for r in res] == [r.state for r in res_ref] == ["OK"] * len(images)
+    assert [r.is_keyframe for r in res] == [r.is_keyframe for r in res_ref]
+    for a, b in zip(res, res_ref):
+        assert np.allclose(a.T_map_cam, b.T_map_cam, atol=1e-9)
+        assert a.time_ms >= a.frame_ms > 0   # the frame's making counts in its processing time
+
+
 def test_mapping_threads_yield_while_a_frame_is_tracked():
     """yield_to_tracking blocks while System.track runs (threads) and returns once it ends,
     or after yield_max_ms; synchronous mode never waits."""

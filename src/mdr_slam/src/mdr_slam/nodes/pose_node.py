@@ -31,6 +31,7 @@ DEFAULTS = {
     "sync_queue_size": 10,
     "sync_slop": 0.0,              # 0 = exact stamps (TimeSynchronizer)
     "max_pending": 2,              # stereo pairs waiting for the tracker; older ones are dropped
+    "pipeline_frames": True,       # make frame N+1 (ORB, stereo) while frame N is being tracked
     "threads": True,
     "trajectory_path": "",
     "trajectory_format": "",
@@ -288,7 +289,7 @@ class OrbNode:
         self.last_stamp = None
         self.last_state = "NOT_INITIALIZED"
         self.clock = ClockWatch()          # ROS time jumping back (bag loop): a new timeline
-        self.lock = __import__("threading").Lock()
+        self.lock = threading.Lock()
         self.pub_state = rospy.Publisher("/mdr/tracking_state", TrackingState, queue_size=10)
         self.pub_kfs = rospy.Publisher("/mdr/keyframes", KeyFrameArray, queue_size=10, latch=True)
         self.srv = rospy.Service("~save_trajectory", SaveTrajectory, self.on_save)
@@ -307,12 +308,19 @@ class OrbNode:
             self.sync = message_filters.ApproximateTimeSynchronizer(subs, qs, float(p["sync_slop"]))
         else:
             self.sync = message_filters.TimeSynchronizer(subs, qs)
-        # the callbacks only hand the newest pair to the tracking thread (LatestSlot): a frame
-        # arriving while tracking is busy replaces the waiting one instead of queueing
+        # the callbacks only hand the newest pairs to the frame thread (LatestSlot): a pair
+        # arriving while it is busy replaces the oldest waiting one instead of queueing. With
+        # pipeline_frames that thread makes the Frame (ORB on both images, stereo matching: no map
+        # access) and a second slot hands it to the tracking thread, so frame N+1 is extracted
+        # while frame N is tracked: the two stages overlap on two cores instead of adding up
         self.slot = LatestSlot(int(p["max_pending"]))
-        self.worker = __import__("threading").Thread(target=self._work, name="tracking",
-                                                     daemon=True)
+        self.frames = LatestSlot(int(p["max_pending"])) if p["pipeline_frames"] else None
+        self.worker = threading.Thread(target=self._work, name="frames", daemon=True)
         self.worker.start()
+        self.tracker = None
+        if self.frames is not None:
+            self.tracker = threading.Thread(target=self._track_work, name="tracking", daemon=True)
+            self.tracker.start()
         self.sync.registerCallback(self.on_stereo)
         rospy.loginfo("pose_node: ORB tracking on %s + %s", rospy.resolve_name("left/image"),
                       rospy.resolve_name("right/image"))
@@ -330,8 +338,9 @@ class OrbNode:
                 return None
             if self.camera is not None and self.system is not None:
                 self.warn("calib_change", "camera_info changed: restarting the tracker")
-                self.system.shutdown()
-                self.system = None
+                with self.lock:   # not while the tracking thread is on a frame
+                    self.system.shutdown()
+                    self.system = None
             self.camera, self.info_key = cam, key
         return self.camera
 
@@ -355,48 +364,80 @@ class OrbNode:
             except Exception as e:   # never die on input: log, drop this frame
                 self.warn("track", "frame skipped: %r" % (e,), level="err")
 
-    def process(self, left_msg, right_msg, left_info=None, right_info=None):
-        from ..conversions import ConversionError
-        with self.lock:
-            stamp = left_msg.header.stamp
-            cam = self.camera if left_info is None else self._camera_from_info(left_info, right_info)
-            if cam is None:
-                self.warn("nocalib", "no stereo calibration yet; frame skipped")
-                return
+    def _track_work(self) -> None:
+        import rospy
+        while not self.frames.closed and not rospy.is_shutdown():
+            item = self.frames.get(timeout=0.5)
+            if item is None:
+                continue
             try:
-                left, right = self._to_mono8(left_msg), self._to_mono8(right_msg)
-            except ConversionError as e:
-                self.warn("img", "image skipped: %s" % e)
-                return
-            w, h = cam.size
-            if left.shape != (h, w) or right.shape != (h, w):
-                self.warn("size", "image sizes %s/%s differ from the calibration %dx%d; skipped"
-                          % (left.shape[::-1], right.shape[::-1], w, h))
-                return
-            t = stamp.to_sec()
-            jumped = self.clock.jumped()
-            if self.last_stamp is not None and t == self.last_stamp:
-                self.warn("dup", "duplicate stereo stamp %.3f; skipped" % t)
-                return
-            if self.last_stamp is not None and t < self.last_stamp and not jumped:
-                self.warn("stale", "stereo stamp %.3f is older than the last one; skipped" % t)
-                return   # the clock goes on: one out-of-order pair
-            if jumped and self.system is not None:   # ROS time went back: a new timeline
-                self.warn("back", "time went backwards (bag loop?): starting a new map")
+                self.track(*item)
+            except Exception as e:   # never die on input: log, drop this frame
+                self.warn("track", "frame skipped: %r" % (e,), level="err")
+
+    def process(self, left_msg, right_msg, left_info=None, right_info=None):
+        """Check and convert one stereo pair and make its Frame (the frame thread); the frame
+        goes to the tracking thread (pipeline_frames) or is tracked here."""
+        from ..conversions import ConversionError
+        stamp = left_msg.header.stamp
+        cam = self.camera if left_info is None else self._camera_from_info(left_info, right_info)
+        if cam is None:
+            self.warn("nocalib", "no stereo calibration yet; frame skipped")
+            return
+        try:
+            left, right = self._to_mono8(left_msg), self._to_mono8(right_msg)
+        except ConversionError as e:
+            self.warn("img", "image skipped: %s" % e)
+            return
+        w, h = cam.size
+        if left.shape != (h, w) or right.shape != (h, w):
+            self.warn("size", "image sizes %s/%s differ from the calibration %dx%d; skipped"
+                      % (left.shape[::-1], right.shape[::-1], w, h))
+            return
+        t = stamp.to_sec()
+        jumped = self.clock.jumped()
+        if self.last_stamp is not None and t == self.last_stamp:
+            self.warn("dup", "duplicate stereo stamp %.3f; skipped" % t)
+            return
+        if self.last_stamp is not None and t < self.last_stamp and not jumped:
+            self.warn("stale", "stereo stamp %.3f is older than the last one; skipped" % t)
+            return   # the clock goes on: one out-of-order pair
+        if jumped and self.system is not None:   # ROS time went back: a new timeline
+            self.warn("back", "time went backwards (bag loop?): starting a new map")
+            with self.lock:   # frames of the old map still waiting are dropped by track()
                 self._save_on_exit()
                 self.system.shutdown()
                 self.system = None
                 self.T_map_odom = np.eye(4)
                 self.kf_poses = {}
-            self.last_stamp = t
-            if self.system is None:
-                from ..pose import System
+        self.last_stamp = t
+        if self.system is None:
+            from ..pose import System
+            with self.lock:
                 self.system = System(cam, self.tracker_params, threads=bool(self.p["threads"]))
-            left, right = cam.rectify(left, right)
+        system = self.system
+        left, right = cam.rectify(left, right)
+        try:
+            frame = system.make_frame(t, left, right)
+        except Exception as e:   # never die on input: log, drop this frame
+            self.warn("track", "tracking failed on frame %.3f: %r" % (t, e), level="err")
+            return
+        if self.frames is None:
+            self.track(stamp, system, frame)
+        elif self.frames.put((stamp, system, frame)):
+            self.warn("busy", "tracking busy: the oldest waiting stereo pair was dropped",
+                      level="info")
+
+    def track(self, stamp, system, frame) -> None:
+        """Track a made Frame and publish the result (the tracking thread)."""
+        with self.lock:
+            if system is not self.system:   # a new map began while this frame waited
+                return
             try:
-                res = self.system.track(t, left, right)
+                res = system.track(frame.stamp, frame=frame)
             except Exception as e:   # never die on input: log, drop this frame
-                self.warn("track", "tracking failed on frame %.3f: %r" % (t, e), level="err")
+                self.warn("track", "tracking failed on frame %.3f: %r" % (frame.stamp, e),
+                          level="err")
                 return
             self.publish(stamp, res)
 
@@ -490,6 +531,9 @@ class OrbNode:
     def shutdown(self) -> None:
         self.slot.close()
         self.worker.join(timeout=10.0)
+        if self.frames is not None:
+            self.frames.close()
+            self.tracker.join(timeout=10.0)
         with self.lock:
             self._save_on_exit()
             if self.system is not None:

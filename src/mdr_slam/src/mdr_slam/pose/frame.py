@@ -187,6 +187,7 @@ class Frame:
         self.T_cw: Optional[np.ndarray] = None
         self.ref_kf = None
         self._tree = None
+        self.build_ms = self.build_cpu_ms = 0.0   # wall and CPU time of making it (System.make_frame)
 
     # --- the keypoint "grid": a k-d tree answers radius queries for all projections at once
     @property

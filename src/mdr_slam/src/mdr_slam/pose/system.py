@@ -94,7 +94,7 @@ NODE_KEYS = {"source", "map_frame", "odom_frame", "base_frame", "camera_frame", 
              "publish_tf", "publish_odom_tf", "path_max_length", "calib", "trajectory_path",
              "trajectory_format", "sync_queue_size", "sync_slop", "threads", "path_period",
              "max_pending", "blas_threads", "cv_threads", "diagnostics_period", "path_min_translation",
-             "path_min_rotation_deg"}
+             "path_min_rotation_deg", "pipeline_frames"}
 
 
 @dataclass
@@ -112,7 +112,7 @@ class TrackResult:
     n_keyframes: int = 0
     n_loop_closures: int = 0
     track_ms: float = 0.0                      # tracking alone (time_ms adds sync-mode mapping)
-    track_cpu_ms: float = 0.0                  # CPU of the calling thread for tracking alone
+    track_cpu_ms: float = 0.0                  # CPU of the threads making (left image) and tracking it
     lock_wait_ms: float = 0.0                  # waiting for the map lock (mapping threads)
     frame_ms: float = 0.0                      # Frame: ORB on both images and stereo matching
 
@@ -183,19 +183,14 @@ class System:
             self.tracking_idle.wait(float(self.p["yield_max_ms"]) / 1000.0)
 
     # ------------------------------------------------------------------ API
-    def track(self, stamp: float, left_rect: np.ndarray, right_rect: np.ndarray) -> TrackResult:
-        if self.threads and self.p["yield_max_ms"] > 0:
-            self.tracking_idle.clear()
-        try:
-            return self._track(stamp, left_rect, right_rect)
-        finally:
-            self.tracking_idle.set()
+    def make_frame(self, stamp: float, left_rect: np.ndarray, right_rect: np.ndarray) -> Frame:
+        """The Frame of a rectified stereo pair: ORB on both images and stereo matching.
 
-    def _track(self, stamp: float, left_rect: np.ndarray, right_rect: np.ndarray) -> TrackResult:
+        It reads no map, so a caller may build the next frame while the previous one is being
+        tracked (``track(..., frame=...)``): the two stages then overlap on two cores. Call it from
+        one thread at a time (the ORB extractors are not re-entrant)."""
         t0 = time.perf_counter()
         c0 = time.thread_time()
-        if self.request_reset:
-            self.reset()
         if left_rect.ndim == 3:
             import cv2
             left_rect = cv2.cvtColor(left_rect, cv2.COLOR_BGR2GRAY)
@@ -203,15 +198,37 @@ class System:
         frame = Frame(stamp, left_rect, right_rect, self.camera, self.extractor,
                       self.extractor_right, th_depth_factor=self.p["th_depth"])
         frame.n_primary = getattr(self.extractor, "n_primary", frame.N)   # low-texture test
-        t_frame = 1000.0 * (time.perf_counter() - t0)
+        frame.build_ms = 1000.0 * (time.perf_counter() - t0)
+        frame.build_cpu_ms = 1000.0 * (time.thread_time() - c0)   # the right image's thread excluded
+        return frame
+
+    def track(self, stamp: float, left_rect: Optional[np.ndarray] = None,
+              right_rect: Optional[np.ndarray] = None, frame: Optional[Frame] = None) -> TrackResult:
+        """Track one stereo pair (rectified images) or a Frame already made by ``make_frame``."""
+        if frame is None:
+            frame = self.make_frame(stamp, left_rect, right_rect)
+        if self.threads and self.p["yield_max_ms"] > 0:
+            self.tracking_idle.clear()
+        try:
+            return self._track(frame)
+        finally:
+            self.tracking_idle.set()
+
+    def _track(self, frame: Frame) -> TrackResult:
+        stamp = frame.stamp
+        t0 = time.perf_counter()
+        c0 = time.thread_time()
+        if self.request_reset:
+            self.reset()
+        t_frame = frame.build_ms
         out = self.tracking.track(frame)
         if out["is_keyframe"] and self.loop_closing is not None:   # proximity loop path
-            self.loop_closing.keep_image(out["keyframe_id"], left_rect)
+            self.loop_closing.keep_image(out["keyframe_id"], frame.image)
         state = self.tracking.state
         tracked_ok = state in (OK, RELOCALIZED) and frame.T_cw is not None and \
             self.tracking.records[-1][1] is not None
-        t_track = 1000.0 * (time.perf_counter() - t0)
-        c_track = 1000.0 * (time.thread_time() - c0)
+        t_track = t_frame + 1000.0 * (time.perf_counter() - t0)
+        c_track = frame.build_cpu_ms + 1000.0 * (time.thread_time() - c0)
         self.tracking_idle.set()   # the mapping threads may go on (back-pressure waits for them)
         if self.threads and tracked_ok and self.local_mapping.queue_size() >= 2 and \
                 self.tracking.n_matches_inliers < self.p["backpressure_inliers"]:
@@ -237,7 +254,7 @@ class System:
             T_map_cam=T_map_cam,
             n_tracked=n_tracked, is_keyframe=bool(out["is_keyframe"]),
             keyframe_id=int(out["keyframe_id"]), corrections=corrections,
-            time_ms=t_track if self.threads else 1000.0 * (time.perf_counter() - t0),
+            time_ms=t_track if self.threads else t_frame + 1000.0 * (time.perf_counter() - t0),
             ref_keyframe_id=self.tracking.ref_kf.id if self.tracking.ref_kf is not None else -1,
             n_map_points=self.tracking.n_local_points,
             n_keyframes=len(self.map.good_keyframes()),
