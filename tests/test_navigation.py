@@ -1,7 +1,10 @@
 """Planners (issue 8 item 1): the grid planner (mdr_slam.nav), the move_base configuration, and
-the contract a planner relies on: the occupancy grid agrees with the map cloud (frame, resolution,
-origin), a path exists between free cells of a fused sample map, and tf map -> base_link exists
-at the stamps of the map and depth clouds on a live run. move_base itself is not in Debian."""
+the contract a planner relies on: on the sample map (the README demo's sample bag, mapped by the
+offline pipeline with its true poses) the occupancy grid agrees with the map cloud (frame,
+resolution, origin), A* finds a path between far-apart cells of the office and none into an
+obstacle, and the map points move_base's obstacle layer marks all lie in occupied grid cells (the
+two costmap layers agree); on a live run tf map -> base_link exists at the stamps of the map and
+depth clouds. move_base itself is not in Debian."""
 from __future__ import annotations
 
 import os
@@ -13,7 +16,8 @@ import pytest
 import yaml
 
 from conftest import ROOT, wait_for
-from mdr_slam.nav import cell_to_world, grid_from_msg, plan_path, traversable, world_to_cell
+from mdr_slam.nav import (cell_to_world, grid_from_msg, map_products, plan_path, traversable,
+                          world_to_cell)
 
 CONFIG = os.path.join(ROOT, "src", "mdr_slam", "config")
 
@@ -117,6 +121,14 @@ def test_costmap_parameters_match_the_fusion_grid():
         assert s["min_obstacle_height"] == fusion["grid_z_min"]
         assert s["max_obstacle_height"] == fusion["grid_z_max"]
     assert fusion["grid_up_axis"] == "z"         # the costmaps measure heights along map z
+    # the obstacle layer marks /mdr/map/points: no point less confident than the grid's
+    # (test_obstacle_layer_points_are_occupied_grid_cells measures it on the sample map)
+    from mdr_slam.nodes.fusion_node import DEFAULTS
+    for conf in (fusion, DEFAULTS):
+        assert conf["display_min_confidence"] >= conf["grid_min_confidence"]
+    # the display cells nest in the grid cells, in the plane and at the band's edges
+    for v in (fusion["grid_resolution"], fusion["grid_z_min"], fusion["grid_z_max"]):
+        assert v / fusion["display_voxel"] == pytest.approx(round(v / fusion["display_voxel"]))
     names = [p["name"] for p in glob["plugins"]]
     assert names == ["static_layer", "obstacle_layer", "inflation_layer"]
     assert mb["base_global_planner"] and mb["NavfnROS"]["allow_unknown"]
@@ -133,10 +145,14 @@ def test_navigation_launch_parses_with_and_without_move_base():
                                                        "/bag_player", "/move_base"}
 
 
-# ---------------------------------------------------------------------- (b) the fused sample map
+# ---------------------------------------------------------------------- (b) the sample map
+MID_FRAME = 300   # 15 s into the sample: the pure-rotation segment, the map full of young points
+
+
 @pytest.fixture(scope="module")
 def nav_sim(tmp_path_factory):
-    """The office loop at half resolution and 10 Hz (as tests/test_pipeline.py's small_sim)."""
+    """The office loop at half resolution and 10 Hz (as tests/test_pipeline.py's small_sim), for
+    the live run: a light bag for the three nodes on a shared 2-core machine."""
     from mdr_slam.sim import generate
     d = str(tmp_path_factory.mktemp("nav_office"))
     generate(d, scene="office", duration=30.0, seed=1, rate=10.0, scale=0.5, workers=2,
@@ -145,24 +161,37 @@ def nav_sim(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def fused(nav_sim):
-    """The offline pipeline (ground-truth poses) over 20 s of the loop: the VoxelMap, the
-    fusion parameters and the camera positions."""
+def sample_map(sample_bag):
+    """The README demo's map of the sample bag (conftest ``sample_bag``: 752x480, 20 Hz, 600
+    pairs): the offline pipeline of ``mdr run BAG --pose-source groundtruth`` (what
+    ``./run_demo.sh --pose-source groundtruth`` maps) on every frame, in-process. Ground-truth
+    poses, not ORB: the ORB map is in the first camera's optical frame (no floor-level z-up
+    ``map``, so the grid's obstacle band has no meaning there without aligning it to the ground
+    truth) and tracking would add ~30 s of CPU. Returns the map snapshots ``{"mid", "end"}``
+    (``to_cloud(0)`` after frame MID_FRAME and after the last frame), the fusion parameters, the
+    camera positions and the costmap parameters."""
     from mdr_slam.pipeline import Pipeline, PipelineConfig, frames_from_bag, load_params
-    cam, frames = frames_from_bag(os.path.join(nav_sim, "sequence.bag"), max_frames=200)
-    pl = Pipeline(cam, PipelineConfig(pose_source="groundtruth", depth_params={"tau": 0.02}))
-    for f in frames:
+    cam, frames = frames_from_bag(os.path.join(sample_bag, "sequence.bag"))
+    pl = Pipeline(cam, PipelineConfig(pose_source="groundtruth"))
+    snaps = {}
+    t0 = time.perf_counter()
+    for i, f in enumerate(frames, 1):
         pl.process(f)
-    return pl.map, load_params("fusion"), np.array([T[:3, 3] for _, T in pl.poses])
+        if i == MID_FRAME:
+            snaps["mid"] = pl.map.to_cloud(0)
+    snaps["end"] = pl.map.to_cloud(0)
+    print("sample map: %d frames in %.1f s, %d points" % (i, time.perf_counter() - t0, len(pl.map)))
+    assert i == 600 and len(pl.poses) == 600
+    common = yaml.safe_load(open(os.path.join(CONFIG, "navigation", "costmap_common_params.yaml")))
+    return snaps, load_params("fusion"), np.array([T[:3, 3] for _, T in pl.poses]), common
 
 
-def _grid_message(xyz, p):
+def _grid_message(grid, p):
     """The grid as the fusion node publishes it (same functions, same parameters)."""
     from nav_msgs.msg import OccupancyGrid
     from mdr_slam.conversions import matrix_to_pose
-    from mdr_slam.fusion import grid_origin_T, occupancy_grid
-    data, origin, res = occupancy_grid(xyz, p["grid_resolution"], p["grid_z_min"], p["grid_z_max"],
-                                       p["grid_up_axis"], p["grid_free_band"])
+    from mdr_slam.fusion import grid_origin_T
+    data, origin, res = grid
     m = OccupancyGrid()
     m.header.frame_id = p["map_frame"]
     m.info.resolution = res
@@ -172,13 +201,15 @@ def _grid_message(xyz, p):
     return m
 
 
-def test_grid_agrees_with_the_map_cloud_and_plans_a_path(fused):
+def test_sample_map_grid_agrees_with_the_cloud_and_plans_a_path(sample_map):
     from scipy import ndimage
     from scipy.spatial import cKDTree
-    vmap, p, traj = fused
-    c = vmap.to_cloud(p["grid_min_confidence"])
+    snaps, p, traj, common = sample_map
+    c = snaps["end"]
     xyz = np.stack([c["x"], c["y"], c["z"]], 1).astype(np.float64)
-    msg = _grid_message(xyz, p)
+    xyz = xyz[c["confidence"] >= p["grid_min_confidence"]]     # the grid's points, unsampled
+    _, grid = map_products(c, p)                                # what the fusion node publishes
+    msg = _grid_message(grid, p)
     g, origin, res = grid_from_msg(msg)
     H, W = g.shape
     assert msg.header.frame_id == p["map_frame"] and res == pytest.approx(p["grid_resolution"])
@@ -187,7 +218,7 @@ def test_grid_agrees_with_the_map_cloud_and_plans_a_path(fused):
     assert np.allclose(np.array(origin) / res, np.round(np.array(origin) / res), atol=1e-6)
     band = xyz[(xyz[:, 2] >= p["grid_z_min"]) & (xyz[:, 2] <= p["grid_z_max"])]
     floor = xyz[(xyz[:, 2] < p["grid_z_min"]) & (xyz[:, 2] >= p["grid_z_min"] - p["grid_free_band"])]
-    assert len(band) > 1000 and len(floor) > 50
+    assert len(band) > 3000 and len(floor) > 100
     # every obstacle-band point lies inside the grid, in an occupied cell; every occupied cell
     # holds band points; the floor points lie in free or occupied cells (never unknown)
     rc = world_to_cell(band[:, :2], origin, res)
@@ -200,33 +231,53 @@ def test_grid_agrees_with_the_map_cloud_and_plans_a_path(fused):
     lo, hi = np.array(origin), np.array(origin) + res * np.array([W, H])
     used = np.vstack([band, floor])[:, :2]
     assert (used.min(0) >= lo - 1e-9).all() and (used.max(0) <= hi + 1e-9).all()
-    # where the camera went there is no obstacle (no phantom obstacles on the robot's own route)
+    # the grid covers the office (8 x 6 m) and the camera's whole route; no cell on the route is
+    # occupied (no phantom obstacles where the robot went)
+    assert W * res > 6.0 and H * res > 4.5
     tc = world_to_cell(traj[:, :2], origin, res)
-    inside = (tc >= 0).all(1) & (tc[:, 0] < H) & (tc[:, 1] < W)
-    assert inside.mean() > 0.9
-    assert (g[tc[inside, 0], tc[inside, 1]] != 100).all()
+    assert ((tc >= 0).all(1) & (tc[:, 0] < H) & (tc[:, 1] < W)).all()
+    assert (g[tc[:, 0], tc[:, 1]] != 100).all()
 
-    # A robot of radius 0.15 m, unknown cells allowed (navfn allow_unknown, as move_base.yaml):
-    # from the start of the trajectory to its far side, and to every 20th pose of it
-    radius = 0.15
+    # The robot of config/navigation (robot_radius) on the grid as navfn reads it (allow_unknown,
+    # move_base.yaml): the sample's low-texture floor is mostly unknown, the route included.
+    radius = float(common["robot_radius"])
     ok = traversable(g, res, radius, unknown_traversable=True)
     occ_xy = cell_to_world(np.argwhere(g == 100), origin, res)
-    start = traj[0, :2]
-    far = traj[np.argmax(np.linalg.norm(traj[:, :2] - start, axis=1)), :2]
+    start, half = traj[0, :2], traj[len(traj) // 2, :2]       # t = 0 and t = 15 s of the loop
+    sc, hc = world_to_cell(start, origin, res), world_to_cell(half, origin, res)
+    assert ok[tuple(sc)] and ok[tuple(hc)]                     # both ends: a robot fits there
+    straight = np.linalg.norm(half - start)
+    assert straight > 1.5                                      # far apart in the office
     t0 = time.perf_counter()
-    plan = plan_path((g, origin, res), start, far, robot_radius=radius, unknown_traversable=True)
+    plan = plan_path((g, origin, res), start, half, robot_radius=radius, unknown_traversable=True)
     t_astar = time.perf_counter() - t0
     assert plan is not None
-    _check_path(plan, ok, world_to_cell(start, origin, res), world_to_cell(far, origin, res))
+    _check_path(plan, ok, sc, hc)
     d, _ = cKDTree(occ_xy).query(plan.xy)   # independent clearance check: no cell within radius
     assert d.min() > radius
-    dij = plan_path((g, origin, res), start, far, robot_radius=radius, unknown_traversable=True,
+    dij = plan_path((g, origin, res), start, half, robot_radius=radius, unknown_traversable=True,
                     method="dijkstra")
     assert dij.length == pytest.approx(plan.length, abs=1e-9)
+    # plausible: at least the straight line between the cell centres, at most the camera's own
+    # route between the two poses (a feasible way, up to the octile detour of a grid path)
+    route = float(np.sum(np.linalg.norm(np.diff(traj[:len(traj) // 2 + 1, :2], axis=0), axis=1)))
     assert plan.length >= np.linalg.norm(plan.xy[-1] - plan.xy[0]) - 1e-9
-    for q in traj[::20, :2]:
+    assert plan.length <= 1.09 * max(route, straight) + 2 * res
+    for q in traj[::20, :2]:                # every part of the route is reachable from the start
         assert plan_path((g, origin, res), start, q, robot_radius=radius,
                          unknown_traversable=True) is not None, q
+
+    # Negative: a goal in an obstacle (the middle of the largest occupied blob) has no path, with
+    # or without unknown cells; a goal in an unknown cell has none when unknown is not allowed
+    lab, n = ndimage.label(g == 100)
+    big = np.argmax(ndimage.sum(g == 100, lab, range(1, n + 1))) + 1
+    core = ndimage.binary_erosion(lab == big)
+    assert core.any()
+    wall = cell_to_world(np.argwhere(core)[len(np.argwhere(core)) // 2], origin, res)
+    assert plan_path((g, origin, res), start, wall, robot_radius=radius, unknown_traversable=True) is None
+    assert plan_path((g, origin, res), start, wall) is None
+    assert g[tuple(hc)] == -1
+    assert plan_path((g, origin, res), start, half, robot_radius=radius) is None
 
     # Strictly on mapped floor: the two farthest-apart cells of the largest free component
     free = g == 0
@@ -241,10 +292,49 @@ def test_grid_agrees_with_the_map_cloud_and_plans_a_path(fused):
     assert strict is not None and len(cells) >= 20
     _check_path(strict, free, a, b)
     assert (g[strict.cells[:, 0], strict.cells[:, 1]] == 0).all()
-    print("fused sample map: grid %dx%d at %s, %d occupied, %d free cells; start->far path %.2f m "
-          "(straight %.2f m, A* %.1f ms); on mapped floor %.2f m over %d free cells"
-          % (W, H, origin, (g == 100).sum(), free.sum(), plan.length, np.linalg.norm(far - start),
-             1e3 * t_astar, strict.length, len(cells)))
+    print("sample map: grid %dx%d at %s, %d occupied, %d free, %d unknown cells (%d of %d route "
+          "cells unknown); start->half-way path %.2f m (straight %.2f m, route %.2f m, A* %.1f ms, "
+          "robot radius %.2f m); on mapped floor %.2f m over %d free cells"
+          % (W, H, origin, (g == 100).sum(), free.sum(), (g == -1).sum(),
+             (g[tc[:, 0], tc[:, 1]] == -1).sum(), len(tc), plan.length, straight, route,
+             1e3 * t_astar, radius, strict.length, len(cells)))
+
+
+def _points_off_occupied(pts, grid, lo_h, hi_h):
+    """(band points, of them in free cells, in unknown cells, outside the grid): the published
+    map points move_base's obstacle layer marks (height in [lo_h, hi_h], as costmap_2d's
+    min/max_obstacle_height) against the published grid's cells."""
+    g, origin, res = grid
+    x = pts["xyz"]
+    band = x[(x[:, 2] >= lo_h) & (x[:, 2] <= hi_h)]
+    rc = world_to_cell(band[:, :2], origin, res)
+    inside = (rc >= 0).all(1) & (rc[:, 0] < g.shape[0]) & (rc[:, 1] < g.shape[1])
+    v = g[rc[inside, 0], rc[inside, 1]]
+    return len(band), int((v == 0).sum()), int((v == -1).sum()), int((~inside).sum())
+
+
+@pytest.mark.parametrize("when", ["mid", "end"])
+def test_obstacle_layer_points_are_occupied_grid_cells(sample_map, when):
+    """The two layers of the global costmap agree: every /mdr/map/points point the obstacle layer
+    marks (it never clears them: the cloud is in ``map``) falls in a cell /mdr/map/grid (static
+    layer) marks occupied, in the middle of the run (young points everywhere) and at its end."""
+    snaps, p, _, common = sample_map
+    src = common["obstacle_layer"]["mdr_map"]
+    lo_h, hi_h = src["min_obstacle_height"], src["max_obstacle_height"]
+    assert p["display_min_confidence"] >= p["grid_min_confidence"]
+    pts, grid = map_products(snaps[when], p)
+    n, n_free, n_unknown, n_out = _points_off_occupied(pts, grid, lo_h, hi_h)
+    # the check can fail: with the former default display_min_confidence 2 the cloud holds young
+    # points (seen by 2 clouds) the grid (confidence >= 3) does not mark
+    old = _points_off_occupied(map_products(snaps[when], dict(p, display_min_confidence=2))[0],
+                               grid, lo_h, hi_h)
+    print("%s (frame %s): %d band points of /mdr/map/points, %d in free, %d in unknown cells, %d "
+          "outside the grid; with display_min_confidence 2: %d band points, %d free, %d unknown, "
+          "%d outside" % (when, MID_FRAME if when == "mid" else "600", n, n_free, n_unknown, n_out,
+                          *old))
+    assert n > 3000
+    assert (n_free, n_unknown, n_out) == (0, 0, 0)
+    assert sum(old[1:]) > 0
 
 
 # ---------------------------------------------------------------------- (c) live run: tf and frames
@@ -307,6 +397,11 @@ def test_live_tf_at_cloud_stamps_and_grid_frame(nav_sim, rospy_client, start_pro
               % (len(maps), len(grids), len(depths), g.shape[1], g.shape[0], occ.sum(),
                  100 * hit[occ].mean(), 100 * inside.mean()))
         assert hit[occ].mean() > 0.95
+        # ... and every band point of that cloud (what move_base's obstacle layer marks) is in an
+        # occupied cell of the grid (the static layer): the two layers agree
+        assert inside.all() and (g[rc[:, 0], rc[:, 1]] == 100).all(), (
+            "%d of %d band points of /mdr/map/points outside the grid's occupied cells"
+            % ((~inside).sum() + (g[rc[inside, 0], rc[inside, 1]] != 100).sum(), len(band)))
     finally:
         for s in subs:
             s.unregister()

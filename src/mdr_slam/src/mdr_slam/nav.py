@@ -12,7 +12,10 @@ check that the published map is plannable:
   inflated with SciPy's Euclidean distance transform; unknown cells are not traversable unless
   ``unknown_traversable``);
 * :func:`plan_path` finds a shortest 8-connected path (no corner cutting) with A* (a heap over the
-  search frontier) or with SciPy's compiled Dijkstra on the free-cell graph built vectorized.
+  search frontier) or with SciPy's compiled Dijkstra on the free-cell graph built vectorized;
+* :func:`map_products` is what the fusion node publishes from one snapshot of its map: the
+  display/obstacle cloud ``/mdr/map/points`` and the grid ``/mdr/map/grid`` (the node calls it, so
+  tests check the published contract without ROS).
 """
 from __future__ import annotations
 
@@ -22,7 +25,8 @@ from typing import NamedTuple, Optional, Tuple
 
 import numpy as np
 
-__all__ = ["Plan", "world_to_cell", "cell_to_world", "grid_from_msg", "traversable", "plan_path"]
+__all__ = ["Plan", "world_to_cell", "cell_to_world", "grid_from_msg", "traversable", "plan_path",
+           "map_min_confidence", "map_products"]
 
 _SQRT2 = math.sqrt(2.0)
 # 8-neighbourhood (drow, dcol) and step length in cells
@@ -201,3 +205,51 @@ def plan_path(grid, start_xy, goal_xy, resolution: Optional[float] = None, origi
     steps = np.diff(cells, axis=0)
     length = float(np.sum(np.hypot(steps[:, 0], steps[:, 1]))) * float(resolution)
     return Plan(cells, cell_to_world(cells, origin, resolution), length)
+
+
+# ---------------------------------------------------------------------- the fusion node's outputs
+def map_min_confidence(params: dict) -> Tuple[int, int]:
+    """``(points, grid)`` minimum confidences of ``/mdr/map/points`` and ``/mdr/map/grid`` for
+    the fusion parameters ``params`` (``display_min_confidence``, ``grid_min_confidence``; both 0
+    when ``confidence`` is off: a plain voxel grid has no confidence to filter on)."""
+    if not params.get("confidence", True):
+        return 0, 0
+    return int(params["display_min_confidence"]), int(params["grid_min_confidence"])
+
+
+def map_products(cloud: dict, params: dict):
+    """What the fusion node publishes from one snapshot ``cloud`` of its map
+    (:meth:`mdr_slam.fusion.VoxelMap.to_cloud` at ``min(map_min_confidence(params))`` or lower:
+    fields ``x y z intensity confidence``).
+
+    Returns ``(points, grid)``: ``points`` a dict ``xyz`` (N, 3) float64, ``intensity`` and
+    ``confidence`` (N,) of ``/mdr/map/points`` (points of confidence ``>= display_min_confidence``,
+    averaged per ``display_voxel`` cell when that is > 0), and ``grid`` the
+    :func:`mdr_slam.fusion.occupancy_grid` tuple ``(data, origin, resolution)`` of
+    ``/mdr/map/grid`` from the points of confidence ``>= grid_min_confidence`` (None when
+    ``publish_grid`` is off). Both are in the map frame.
+
+    move_base's obstacle layer marks ``/mdr/map/points`` between its min/max obstacle heights
+    (config/navigation: ``grid_z_min``/``grid_z_max``) and never clears them (the cloud is in
+    ``map``), so with ``display_min_confidence >= grid_min_confidence`` every such point falls in a
+    cell the grid marks occupied: the two layers agree. Below it, young points that the fusion
+    may still remove as noise become lasting obstacles the grid does not have.
+    """
+    from .fusion import occupancy_grid, voxel_downsample
+    p = params
+    mc_disp, mc_grid = map_min_confidence(p)
+    conf_all = np.asarray(cloud["confidence"])
+    xyz = np.stack([cloud["x"], cloud["y"], cloud["z"]], 1).astype(np.float64)
+    grid = None
+    if p["publish_grid"]:
+        grid = occupancy_grid(xyz[conf_all >= mc_grid], p["grid_resolution"], p["grid_z_min"],
+                              p["grid_z_max"], p["grid_up_axis"], p["grid_free_band"])
+    keep = conf_all >= mc_disp
+    xyz = xyz[keep]
+    inten = np.asarray(cloud["intensity"])[keep]
+    conf = conf_all[keep].astype(np.float64)
+    if p["display_voxel"] > 0 and len(xyz):
+        _, xyz, _, ex = voxel_downsample(xyz, p["display_voxel"], None,
+                                         {"intensity": inten, "confidence": conf})
+        inten, conf = ex["intensity"], ex["confidence"]
+    return {"xyz": xyz, "intensity": inten, "confidence": conf}, grid

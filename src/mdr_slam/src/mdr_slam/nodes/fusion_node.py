@@ -77,7 +77,7 @@ DEFAULTS = {
     # output
     "publish_rate": 1.0,
     "display_voxel": 0.05,          # m; 0 = publish every map point
-    "display_min_confidence": 2,
+    "display_min_confidence": 3,    # >= grid_min_confidence: move_base's obstacle layer marks these
     "publish_grid": True,
     "grid_resolution": 0.05,
     "grid_z_min": 0.1,
@@ -117,6 +117,12 @@ class FusionNode:
         self.closed = False
         self.warn = Throttled()
         self.guard = StampGuard()
+        if p["confidence"] and p["publish_grid"] and \
+                p["display_min_confidence"] < p["grid_min_confidence"]:
+            rospy.logwarn("fusion_node: display_min_confidence %s < grid_min_confidence %s: "
+                          "/mdr/map/points has points the grid does not mark occupied (move_base's "
+                          "obstacle layer would mark them and never clear them)",
+                          p["display_min_confidence"], p["grid_min_confidence"])
         self.lock = threading.RLock()
         self.map = VoxelMap.from_config(p)
         self.map_path = os.path.expanduser(p["map_path"])
@@ -398,29 +404,17 @@ class FusionNode:
         import rospy
         from nav_msgs.msg import OccupancyGrid
         from ..conversions import arrays_to_pointcloud2, matrix_to_pose
-        from ..fusion import grid_origin_T, occupancy_grid, voxel_downsample
+        from ..fusion import grid_origin_T
+        from ..nav import map_min_confidence, map_products
         p = self.p
-        mc_disp = p["display_min_confidence"] if p["confidence"] else 0
-        mc_grid = p["grid_min_confidence"] if p["confidence"] else 0
         with self.lock:  # only the copy holds the lock; integration goes on meanwhile
-            c = self.map.to_cloud(min(mc_disp, mc_grid))
+            c = self.map.to_cloud(min(map_min_confidence(p)))
         stamp = rospy.Time.now()
-        xyz = np.stack([c["x"], c["y"], c["z"]], 1).astype(np.float64)
-        grid = None
-        if p["publish_grid"]:
-            grid = occupancy_grid(xyz[c["confidence"] >= mc_grid], p["grid_resolution"],
-                                  p["grid_z_min"], p["grid_z_max"], p["grid_up_axis"],
-                                  p["grid_free_band"])
-        keep = c["confidence"] >= mc_disp
-        xyz = xyz[keep]
-        inten, conf = c["intensity"][keep], c["confidence"][keep].astype(np.float64)
-        if p["display_voxel"] > 0 and len(xyz):
-            _, xyz, _, ex = voxel_downsample(xyz, p["display_voxel"], None,
-                                             {"intensity": inten, "confidence": conf})
-            inten, conf = ex["intensity"], ex["confidence"]
+        pts, grid = map_products(c, p)   # the cloud and the grid of the same snapshot
         self.pub_points.publish(arrays_to_pointcloud2(
-            {"intensity": np.asarray(inten, np.float32), "confidence": np.asarray(conf, np.float32)},
-            stamp, p["map_frame"], xyz=xyz))
+            {"intensity": np.asarray(pts["intensity"], np.float32),
+             "confidence": np.asarray(pts["confidence"], np.float32)},
+            stamp, p["map_frame"], xyz=pts["xyz"]))
         if grid is not None:
             data, origin, res = grid
             msg = OccupancyGrid()
