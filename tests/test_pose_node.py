@@ -12,8 +12,17 @@ from conftest import wait_for
 pytestmark = pytest.mark.ros
 
 
-def test_orb_node_tracks_synthetic_stream(rospy_client, start_process, tmp_path):
+# a camera 1.2 m above base_link, looking ahead and pitched 10 deg down (x y z qx qy qz qw)
+_MOUNT = "0.2 0 1.2 -0.5416 0.5416 -0.4545 0.4545"
+
+
+@pytest.mark.parametrize("mount", ["", _MOUNT], ids=["camera_map", "base_map"])
+def test_orb_node_tracks_synthetic_stream(rospy_client, start_process, tmp_path, mount):
+    """With ``base_to_camera`` the ORB node's map is base_link where tracking starts (REP-105):
+    every pose, keyframe pose, tf and the saved trajectory is T_base_cam @ (the tracker's pose in
+    its first camera frame); without it map is the first camera's optical frame."""
     rospy = rospy_client
+    from mdr_slam.nodes.common import parse_transform
     from mdr_slam import conversions as cv
     from mdr_slam.camera import StereoCamera
     from mdr_slam.geometry import inv_T
@@ -28,8 +37,10 @@ def test_orb_node_tracks_synthetic_stream(rospy_client, start_process, tmp_path)
     poses = orbit_trajectory(12, radius=1.0, arc=np.pi / 4)
     frames = [room.render_stereo(T, cam) for T in poses]
     traj_path = str(tmp_path / "exit.txt")
+    A = parse_transform(mount)
     node = start_process(["rosrun", "mdr_slam", "pose_node", "_source:=orb", "_threads:=false", "_n_features:=1000",
                           "__name:=orb_test", "_trajectory_path:=" + traj_path,
+                          *(["_base_to_camera:=" + mount] if mount else []),
                           "left/image:=/t/left/image", "right/image:=/t/right/image",
                           "left/camera_info:=/t/left/info", "right/camera_info:=/t/right/info"],
                          "orb")
@@ -64,9 +75,20 @@ def test_orb_node_tracks_synthetic_stream(rospy_client, start_process, tmp_path)
     assert len(states) == len(frames)
     assert [s.state for s in states].count(TrackingState.OK) == len(frames)
     assert wait_for(lambda: len(got) == len(frames), 5)
+    np.testing.assert_allclose(cv.pose_stamped_to_matrix(got[0]), A, atol=1e-6)   # map = base at start
     T_est = cv.pose_stamped_to_matrix(got[-1])
-    T_true = inv_T(poses[0]) @ poses[-1]
+    T_true = A @ inv_T(poses[0]) @ poses[-1]
     assert np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]) < 0.05
+    assert np.degrees(np.arccos(np.clip((np.trace(T_est[:3, :3].T @ T_true[:3, :3]) - 1) / 2, -1, 1))) < 2.0
+    # keyframe poses are in the same map: each equals /mdr/pose at its stamp
+    got_t = np.array([m.header.stamp.to_sec() for m in got])
+    kf_new = [k for a in kfs if a.reason == KeyFrameArray.NEW_KEYFRAME for k in a.keyframes]
+    assert kf_new
+    for k in kf_new:
+        j = int(np.argmin(np.abs(got_t - k.stamp.to_sec())))
+        assert abs(got_t[j] - k.stamp.to_sec()) < 1e-3
+        np.testing.assert_allclose(cv.pose_to_matrix(k.pose), cv.pose_stamped_to_matrix(got[j]),
+                                   atol=1e-5)
     assert kfs and kfs[0].reason == KeyFrameArray.NEW_KEYFRAME and kfs[0].keyframes[0].id == 0
     # trajectory service
     rospy.wait_for_service("/orb_test/save_trajectory", 10)
@@ -75,6 +97,7 @@ def test_orb_node_tracks_synthetic_stream(rospy_client, start_process, tmp_path)
     resp = save(out, "")
     assert resp.success and resp.n_poses == len(frames), resp.message
     assert np.loadtxt(out).shape == (len(frames), 12)
+    np.testing.assert_allclose(np.loadtxt(out)[-1].reshape(3, 4), T_est[:3], atol=1e-3)   # in map too
     # trajectory on shutdown
     node.stop()
     assert os.path.exists(traj_path) and np.loadtxt(traj_path).shape == (len(frames), 8)
