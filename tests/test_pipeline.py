@@ -63,6 +63,34 @@ def test_mdr_run_writes_map_trajectory_and_summary(small_sim, tmp_path):
     assert m["completeness"] > 0.02           # the ground-truth map covers all 30 s
 
 
+def test_orb_map_is_base_link_at_the_start_with_base_to_camera(small_sim):
+    """As the pose node: with ``base_to_camera`` (T_base_cam) the offline runner's ORB trajectory
+    and map are in base_link at the first tracked frame (REP-105 map), i.e. T_base_cam times what
+    it gives without (the tracker's first camera frame); the same run otherwise."""
+    from mdr_slam.geometry import parse_transform, transform_points
+    from mdr_slam.pipeline import Pipeline, PipelineConfig, frames_from_bag
+    mount = "0.1 0 1.3 -0.5416 0.5416 -0.4545 0.4545"   # 1.3 m up, 10 deg down
+    out = {}
+    for m in ("", mount):
+        cam, frames = frames_from_bag(os.path.join(small_sim, "sequence.bag"), max_frames=20)
+        pl = Pipeline(cam, PipelineConfig(pose_source="orb", pose_params={"base_to_camera": m},
+                                          depth_params={"tau": 0.02}))
+        for f in frames:
+            pl.process(f)
+        pl.tracker.shutdown()
+        out[m] = (pl.trajectory().matrices(), pl.map.points(1))
+    A = parse_transform(mount)
+    (Ta, Pa), (Tb, Pb) = out[""], out[mount]
+    assert len(Ta) == len(Tb) >= 15 and min(len(Pa), len(Pb)) > 100
+    np.testing.assert_allclose(Ta[0], np.eye(4), atol=1e-9)
+    np.testing.assert_allclose(Tb, A[None] @ Ta, atol=1e-6)
+    # the same surfaces, voxelized along other axes: each map point near one of the other map's
+    from scipy.spatial import cKDTree
+    d = cKDTree(transform_points(A, Pa)).query(Pb)[0]
+    assert np.median(d) < 0.02 and np.percentile(d, 90) < 0.05, (np.median(d), np.percentile(d, 90))
+    assert np.median(cKDTree(Pa).query(Pb)[0]) > 0.5   # ... and not the map of the first frame
+
+
 def test_ablation_switches_change_the_map(small_sim, tmp_path):
     """--temporal off publishes every ELAS pixel (many more, noisier points than the filter)."""
     outs = {}

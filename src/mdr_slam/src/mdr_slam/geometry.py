@@ -10,6 +10,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 __all__ = [
+    "parse_transform",
     "make_T", "inv_T", "transform_points", "quat_to_R", "R_to_quat", "T_from_pos_quat",
     "pos_quat_from_T", "is_valid_T", "rotation_angle", "relative_motion",
 ]
@@ -86,3 +87,15 @@ def relative_motion(T_a: np.ndarray, T_b: np.ndarray):
     """Translation (m) and rotation (rad) between two poses of the same frame."""
     D = inv_T(T_a) @ T_b
     return float(np.linalg.norm(D[:3, 3])), rotation_angle(D[:3, :3])
+
+
+def parse_transform(text, default=None) -> np.ndarray:
+    """4x4 matrix from "x y z qx qy qz qw" (or "x y z yaw pitch roll"), as static_transform_publisher."""
+    if text is None or (isinstance(text, str) and not text.strip()):
+        return np.eye(4) if default is None else default
+    vals = [float(v) for v in (text.split() if isinstance(text, str) else text)]
+    if len(vals) == 7:
+        return make_T(quat_to_R(vals[3:]), vals[:3])
+    if len(vals) == 6:
+        return make_T(Rotation.from_euler("ZYX", vals[3:]).as_matrix(), vals[:3])
+    raise ValueError("a transform is 'x y z qx qy qz qw' or 'x y z yaw pitch roll', got %r" % (text,))

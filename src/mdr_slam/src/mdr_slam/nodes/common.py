@@ -3,25 +3,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..geometry import parse_transform  # noqa: F401  (the nodes' transform arguments)
+
 
 def get_params(defaults: dict, ns: str = "~") -> dict:
     """Read every key of ``defaults`` from the parameter server (private namespace by default)."""
     import rospy
     return {k: rospy.get_param(ns + k, v) for k, v in defaults.items()}
-
-
-def parse_transform(text, default=None) -> np.ndarray:
-    """4x4 matrix from "x y z qx qy qz qw" (or "x y z yaw pitch roll"), as static_transform_publisher."""
-    from ..geometry import make_T, quat_to_R
-    from scipy.spatial.transform import Rotation
-    if text is None or (isinstance(text, str) and not text.strip()):
-        return np.eye(4) if default is None else default
-    vals = [float(v) for v in (text.split() if isinstance(text, str) else text)]
-    if len(vals) == 7:
-        return make_T(quat_to_R(vals[3:]), vals[:3])
-    if len(vals) == 6:
-        return make_T(Rotation.from_euler("ZYX", vals[3:]).as_matrix(), vals[:3])
-    raise ValueError("a transform is 'x y z qx qy qz qw' or 'x y z yaw pitch roll', got %r" % (text,))
 
 
 class Throttled:
