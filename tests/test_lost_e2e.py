@@ -1,17 +1,33 @@
 """Tracking LOST end to end (issue 8, item 2): the real ORB tracker in the launch goes LOST, the
 fusion node integrates nothing stamped while LOST (no smeared map) and resumes after relocalization.
 
-The bag is the small office sim with the camera "kidnapped": frames 0..A-1 as rendered, then
-BLANK uniform grey stereo pairs (the tracker finds no features: LOST), then frames R0..R1-1 of an
-earlier, already mapped part of the sequence with stamps that keep increasing, so the tracker must
+The bag is the sample bag (the README demo's office sequence, 752x480, 20 Hz; conftest
+``sample_bag``) with the camera "kidnapped": frames 0..A-1 as rendered (8 s of the first loop),
+then UNMAPPED/2 pairs of another place (0.5 s of the sim's corridor, same camera: texture the
+tracker cannot track or relocalize on, but the depth node matches it: LOST), BLANK uniform grey
+pairs (1 s, no features at all), the other UNMAPPED/2 corridor pairs, then frames R0..R1-1 (5 s of
+an earlier, already mapped part of the loop) with stamps that keep increasing, so the tracker must
 relocalize. /tf and /ground_truth/pose of the sim are dropped (ORB poses; they would not fit the
-restamped frames).
+restamped frames); the sample's ground truth of each played frame scores the run afterwards. The
+launch plays it at PLAY = 0.5x (30 s) so that the ORB tracker keeps up with 20 Hz full-resolution
+pairs on a loaded 2-core machine (it then saw 113-160 of the 160 tracked pairs, all OK). The file
+takes 79-94 s there (the test at nice 19, the ~30 s sample render and a 20-pair corridor render
+included).
 
-The depth node's own LOST pause is off here and it waits up to 1 s for tf with its temporal filter
-off, so the kidnapped frames seen while LOST get clouds posed by tf interpolation between the last
-tracked pose and the relocalized one (a smeared pose): only the fusion node's LOST gating keeps
-them out of the map. With that gating off (fusion ``tracking_state_topic: ""``) the test fails:
-the skip counter stays 0 and ~10k map points carry the LOST clouds' stamps.
+The depth node's own LOST pause is off here, its temporal filter is off (every matched pair gives a
+cloud) and it waits up to 5 s for tf: its filter stage waits on the first corridor pair (and keeps
+the newest matched ones) until the relocalized pose comes, so these pairs get clouds posed by tf
+interpolation between the last tracked pose and the relocalized one (a smeared pose, and another
+place's geometry): only the fusion node's LOST gating keeps them out of the map. With that gating
+off (fusion ``tracking_state_topic: ""``) the test fails: the skip counter stays 0 (measured: 2
+clouds stamped while LOST reached the node, none skipped) and map points carry the LOST clouds'
+stamps (another run, that assertion bypassed: 93880 map points from the clouds at 9.0, 10.85 and
+10.95 s).
+
+The smear is also measured on the sample's ground truth: the ORB map frame is aligned to it by the
+tracked part's poses (Umeyama, SE(3)); the relocalized poses must lie on the true poses of the
+replayed frames, and the map points added after relocalization on the true surfaces (gt_map.ply,
+median distance) about as closely as the points mapped before the loss.
 """
 from __future__ import annotations
 
@@ -26,45 +42,71 @@ from conftest import ROOT, wait_for
 
 pytestmark = pytest.mark.ros
 
-RATE = 10.0          # Hz of the sim
-A = 80               # frames played normally (8 s)
-BLANK = 15           # blank pairs (1.5 s)
-R0, R1 = 10, 60      # the replayed, already mapped frames (5 s)
+RATE = 20.0          # Hz of the sample bag
+A = 160              # frames played normally (8 s)
+BLANK = 20           # blank pairs (1 s)
+UNMAPPED = 20        # pairs of an unmapped place (1 s)
+R0, R1 = 40, 140     # the replayed, already mapped frames (5 s)
+PLAY = 0.5           # play rate of the launch: 20 Hz full-resolution pairs at 10 Hz wall
 
 
 @pytest.fixture(scope="module")
-def lost_bag(tmp_path_factory):
+def lost_bag(sample_bag, tmp_path_factory):
     import rosbag
     import rospy
-    from mdr_slam.sim import generate
-    d = str(tmp_path_factory.mktemp("lost_sim"))
-    generate(d, scene="office", duration=30.0, seed=1, rate=RATE, scale=0.5, workers=2,
-             map_cell=0.02)
-    frames = {}   # stamp (ns) -> {topic: msg}
+    d = str(tmp_path_factory.mktemp("lost_sample"))
+    frames = {}   # stamp (ns) -> {topic: msg}, the first max(A, R1) stereo frames of the sample
     topics = ["/stereo/left/image_raw", "/stereo/right/image_raw", "/stereo/left/camera_info",
               "/stereo/right/camera_info"]
     stamps = []
-    with rosbag.Bag(os.path.join(d, "sequence.bag")) as b:
+    n_need = max(A, R1)
+    with rosbag.Bag(os.path.join(sample_bag, "sequence.bag")) as b:
         for topic, msg, _t in b.read_messages(topics=topics):
             s = msg.header.stamp.to_nsec()
             if s not in frames:
+                if len(stamps) == n_need:
+                    break
                 frames[s] = {}
                 stamps.append(s)
             frames[s][topic] = msg
     stamps.sort()
-    assert len(stamps) >= max(A, R1)
-    seq = [("track", i) for i in range(A)] + [("blank", A - 1)] * BLANK + \
+    assert len(stamps) == n_need and all(len(frames[s]) == len(topics) for s in stamps)
+    # a few frames of another place (the sim's corridor, same camera): textured, matchable
+    # stereo that the tracker cannot relocalize on, so the depth node makes clouds while LOST
+    from mdr_slam.sim import generate
+    dc = os.path.join(d, "corridor")
+    generate(dc, scene="corridor", duration=UNMAPPED / RATE, workers=1, map_cell=0.2)
+    other = []
+    with rosbag.Bag(os.path.join(dc, "sequence.bag")) as b:
+        for topic, msg, _t in b.read_messages(topics=topics[:2]):
+            if topic == topics[0]:
+                other.append({})
+            other[-1][topic] = msg
+    assert len(other) >= UNMAPPED
+    # LOST from the first unmapped pair: the depth node's filter stage waits on that pair (and
+    # holds the newest matched ones) until the relocalized pose comes, so both halves give clouds
+    h = UNMAPPED // 2
+    seq = [("track", i) for i in range(A)] + [("unmapped", i) for i in range(h)] + \
+        [("blank", A - 1)] * BLANK + [("unmapped", i) for i in range(h, UNMAPPED)] + \
         [("kidnap", i) for i in range(R0, R1)]
     t0 = stamps[0]
     dt = int(round(1e9 / RATE))
     info = {"t0": t0 * 1e-9, "dt": dt * 1e-9, "kinds": [k for k, _ in seq],
-            "source": [i for _, i in seq]}
+            "source": [i for _, i in seq],
+            "source_stamps": [stamps[i] * 1e-9 if k != "unmapped" else None for k, i in seq],
+            "sample": sample_bag}
     out = os.path.join(d, "lost.bag")
     with rosbag.Bag(out, "w") as w:
         for k, (kind, i) in enumerate(seq):
             st = rospy.Time(0, t0 + k * dt)
             for topic in topics:
-                m = frames[stamps[i]][topic]
+                if kind == "unmapped":
+                    m = frames[stamps[A - 1]][topic]
+                    if topic.endswith("image_raw"):   # the corridor's pixels, the sample's header
+                        m = copy.deepcopy(m)
+                        m.data = other[i][topic].data
+                else:
+                    m = frames[stamps[i]][topic]
                 if kind == "blank" and topic.endswith("image_raw"):
                     m = copy.deepcopy(m)
                     m.data = bytes([128]) * len(m.data)   # uniform grey: no features at all
@@ -84,10 +126,12 @@ def test_lost_skips_integration_and_resumes_after_relocalization(lost_bag, rosco
     rospy = rospy_client
     import yaml
     from diagnostic_msgs.msg import DiagnosticArray
+    from geometry_msgs.msg import PoseStamped
     from sensor_msgs.msg import PointCloud2
+    from mdr_slam.conversions import pose_stamped_to_matrix
     from mdr_slam_msgs.msg import TrackingState
     from mdr_slam_msgs.srv import SaveMap
-    from mdr_slam.io import cloud_xyz, read_cloud
+    from mdr_slam.io import cloud_xyz, read_cloud, read_tum
     from scipy.spatial import cKDTree
 
     d = str(tmp_path)
@@ -95,16 +139,15 @@ def test_lost_skips_integration_and_resumes_after_relocalization(lost_bag, rosco
     fusion.update(map_path=os.path.join(d, "auto.ply"), autosave_period=0.0, resume=False,
                   clean_every=0, publish_rate=2.0, diagnostics_period=0.5)
     depth = yaml.safe_load(open(os.path.join(ROOT, "src", "mdr_slam", "config", "depth.yaml")))
-    depth.update(tau=0.02,   # half resolution (test_pipeline)
-                 tracking_state_topic="",   # no LOST pause: the fusion node must gate (3.)
-                 tf_timeout=1.0,   # waits for the relocalized pose: LOST frames get interpolated
+    depth.update(tracking_state_topic="",   # no LOST pause: the fusion node must gate (3.)
+                 tf_timeout=5.0,   # waits for the relocalized pose: LOST frames get interpolated
                  temporal=False)   # every matched frame gives a cloud (no filter reset on the jump)
     for name, p in (("fusion", fusion), ("depth", depth)):
         with open(os.path.join(d, name + ".yaml"), "w") as f:
             yaml.safe_dump(p, f)
 
-    states, clouds, diag = [], [], []   # (stamp, state, wall), non-empty cloud stamps,
-    #                                     (wall, fusion diagnostics {key: value})
+    states, clouds, diag, poses = [], [], [], []   # (stamp, state, wall), non-empty cloud stamps,
+    #                       (wall, fusion diagnostics {key: value}), (stamp, 4x4 T_map_cam) of ORB
 
     def on_diag(m):
         for s in m.status:
@@ -116,18 +159,23 @@ def test_lost_skips_integration_and_resumes_after_relocalization(lost_bag, rosco
     def on_cloud(m):
         if m.width * m.height:
             clouds.append(m.header.stamp.to_sec())
+
+    def on_pose(m):
+        poses.append((m.header.stamp.to_sec(), pose_stamped_to_matrix(m)))
     subs = [rospy.Subscriber("/mdr/tracking_state", TrackingState, on_state),
+            rospy.Subscriber("/mdr/pose", PoseStamped, on_pose),
             rospy.Subscriber("/mdr/depth/points", PointCloud2, on_cloud),
             rospy.Subscriber("/diagnostics", DiagnosticArray, on_diag)]
     t_start = time.time()
     launch = start_process(["roslaunch", "mdr_slam", "mdr.launch", "bag:=" + lost_bag["bag"],
-                            "pose_source:=orb", "rate:=1.0", "delay:=4.0", "respawn:=false",
+                            "pose_source:=orb", "rate:=%.2f" % PLAY, "delay:=4.0", "respawn:=false",
                             "fusion_params:=" + os.path.join(d, "fusion.yaml"),
                             "depth_params:=" + os.path.join(d, "depth.yaml")], "launch")
     n = len(lost_bag["kinds"])
     t_last = lost_bag["t0"] + (n - 1) * lost_bag["dt"]
     try:
-        wait_for(lambda: states and states[-1][0] >= t_last - 1e-3, 20 + 2.0 * n / RATE, 0.2)
+        wait_for(lambda: states and states[-1][0] >= t_last - 1e-3, 30 + 2.0 * n / RATE / PLAY,
+                 0.2)
         time.sleep(3.0)   # the last clouds reach the fusion node
         rospy.wait_for_service("/fusion_node/save_map", 10)
         r = rospy.ServiceProxy("/fusion_node/save_map", SaveMap)(os.path.join(d, "map.ply"), "")
@@ -141,12 +189,16 @@ def test_lost_skips_integration_and_resumes_after_relocalization(lost_bag, rosco
     kinds = [(_stamp_kind(lost_bag, t), s) for t, s, _w in states]
     blank = [s for k, s in kinds if k == "blank"]
     track = [s for k, s in kinds if k == "track"]
-    print("states: track %s, blank %s, kidnap %s" % (
+    print("states: track %s, blank %s, unmapped %s, kidnap %s" % (
         np.bincount(track, minlength=4), np.bincount(blank, minlength=4),
+        np.bincount([s for k, s in kinds if k == "unmapped"], minlength=4),
         np.bincount([s for k, s in kinds if k == "kidnap"], minlength=4)))
-    # 1. the real tracker tracks the first part and goes LOST on the blank frames
-    assert len(track) > 0.8 * A and np.mean(np.isin(track, (1, 3))) > 0.9, kinds
+    # 1. the real tracker tracks the first part and goes LOST on the corridor and blank frames
+    # (a busy tracker drops the oldest waiting pair: on a loaded machine it sees 70-100 % of them)
+    assert len(track) > 0.5 * A and np.mean(np.isin(track, (1, 3))) > 0.9, kinds
     assert blank.count(TrackingState.LOST) >= BLANK // 2, kinds
+    unmapped = [s for k, s in kinds if k == "unmapped"]
+    assert unmapped and all(s == TrackingState.LOST for s in unmapped), kinds   # no false reloc
     # 2. it relocalizes on the kidnapped (already mapped) frames
     lost_t = [t for t, s, _w in states if s == TrackingState.LOST]
     back = [(t, w) for t, s, w in states if s in (1, 3) and lost_t and t > min(lost_t)]
@@ -200,3 +252,49 @@ def test_lost_skips_integration_and_resumes_after_relocalization(lost_bag, rosco
     n_at = at_reloc[-1] if at_reloc else 0
     assert int(final.get("clouds integrated", 0)) >= n_at + 5, (n_at, final)
     assert "Traceback" not in out, out[-3000:]
+
+    # 5. on the sample's ground truth. The ORB map frame is aligned to it by the tracked part
+    # (Umeyama SE(3)); then the relocalized poses lie on the true poses of the replayed frames and
+    # the map points added after relocalization on the true surfaces as well as the ones before
+    from evo.core.geometry import umeyama_alignment
+    gt = read_tum(os.path.join(lost_bag["sample"], "groundtruth.tum"))
+    G = gt.matrices()
+
+    def truth(t):   # the ground-truth pose of the sample frame played at stamp t
+        k = int(round((t - lost_bag["t0"]) / lost_bag["dt"]))
+        j = int(np.argmin(np.abs(gt.stamps - lost_bag["source_stamps"][k])))
+        assert abs(gt.stamps[j] - lost_bag["source_stamps"][k]) < 1e-3
+        return G[j]
+    tracked = [(t, T) for t, T in poses if _stamp_kind(lost_bag, t) == "track"]
+    relocd = [(t, T) for t, T in poses
+              if _stamp_kind(lost_bag, t) == "kidnap" and t >= t_reloc - 1e-6]
+    assert len(tracked) > 0.5 * A and len(relocd) >= 5, (len(tracked), len(relocd))
+    E = np.array([T[:3, 3] for _t, T in tracked])
+    Gt = np.array([truth(t)[:3, 3] for t, _T in tracked])
+    R, tr, _c = umeyama_alignment(E.T, Gt.T, False)
+
+    def to_gt(X):
+        return X @ R.T + tr
+    ate_track = np.linalg.norm(to_gt(E) - Gt, axis=1)
+    err_reloc = np.linalg.norm(to_gt(np.array([T[:3, 3] for _t, T in relocd])) -
+                               np.array([truth(t)[:3, 3] for t, _T in relocd]), axis=1)
+    gt_map = cloud_xyz(read_cloud(os.path.join(lost_bag["sample"], "gt_map.ply")))
+    tree = cKDTree(gt_map)
+    d_old, _ = tree.query(to_gt(P[(first < t_lost) & conf]))
+    d_new, _ = tree.query(to_gt(new))
+    print("ground truth: tracked part ATE median %.3f m max %.3f m (%d poses); relocalized poses "
+          "(%d) off by median %.3f m, max %.3f m; map points to gt_map: before LOST median %.3f "
+          "p95 %.3f m (%d), after relocalization median %.3f p95 %.3f m (%d)" % (
+              np.median(ate_track), ate_track.max(), len(E), len(relocd), np.median(err_reloc),
+              err_reloc.max(), np.median(d_old), np.percentile(d_old, 95), len(d_old),
+              np.median(d_new), np.percentile(d_new, 95), len(d_new)))
+    # measured (8 runs while writing this test, loaded 2-core machine, the test at nice 19):
+    # tracked ATE median 0.021-0.038 m; relocalized poses off by median 0.022-0.037 m, max
+    # 0.042-0.064 m; map points to gt_map, median: before LOST 0.050-0.085 m, after
+    # relocalization 0.077-0.128 m (1.2-1.8x).
+    # Their p95 (0.24-0.82 m) is the ELAS-only depth noise of the surfaces in view (the depth
+    # filter is off here), not the pose: it is not bounded here
+    assert np.median(ate_track) < 0.10, "the tracked part does not fit the ground truth"
+    assert np.median(err_reloc) < 0.10 and err_reloc.max() < 0.25, \
+        "relocalized poses off the ground truth: %s" % err_reloc
+    assert np.median(d_new) < max(0.20, 2.0 * np.median(d_old)), "smeared map after relocalization"
