@@ -319,11 +319,13 @@ class OrbNode:
         # while frame N is tracked: the two stages overlap on two cores instead of adding up
         self.slot = LatestSlot(int(p["max_pending"]))
         self.frames = LatestSlot(int(p["max_pending"])) if p["pipeline_frames"] else None
-        self.worker = threading.Thread(target=self._work, name="frames", daemon=True)
+        self.worker = threading.Thread(target=self._serve, args=(self.slot, self.process),
+                                       name="frames", daemon=True)
         self.worker.start()
         self.tracker = None
         if self.frames is not None:
-            self.tracker = threading.Thread(target=self._track_work, name="tracking", daemon=True)
+            self.tracker = threading.Thread(target=self._serve, args=(self.frames, self.track),
+                                            name="tracking", daemon=True)
             self.tracker.start()
         self.sync.registerCallback(self.on_stereo)
         rospy.loginfo("pose_node: ORB tracking on %s + %s", rospy.resolve_name("left/image"),
@@ -357,25 +359,15 @@ class OrbNode:
             self.warn("busy", "tracking busy: the oldest waiting stereo pair was dropped",
                       level="info")
 
-    def _work(self) -> None:
+    def _serve(self, slot, handle) -> None:
+        """A worker thread: ``handle(*item)`` for each item of ``slot`` until it closes."""
         import rospy
-        while not self.slot.closed and not rospy.is_shutdown():
-            item = self.slot.get(timeout=0.5)
+        while not slot.closed and not rospy.is_shutdown():
+            item = slot.get(timeout=0.5)
             if item is None:
                 continue
             try:
-                self.process(*item)
-            except Exception as e:   # never die on input: log, drop this frame
-                self.warn("track", "frame skipped: %r" % (e,), level="err")
-
-    def _track_work(self) -> None:
-        import rospy
-        while not self.frames.closed and not rospy.is_shutdown():
-            item = self.frames.get(timeout=0.5)
-            if item is None:
-                continue
-            try:
-                self.track(*item)
+                handle(*item)
             except Exception as e:   # never die on input: log, drop this frame
                 self.warn("track", "frame skipped: %r" % (e,), level="err")
 
