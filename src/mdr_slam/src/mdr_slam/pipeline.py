@@ -121,15 +121,14 @@ class Pipeline:
         self.depth = StereoDepth(camera, dp)
         self.map = VoxelMap(fp)
         self.tracker = None
-        self.T_map_cam0 = np.eye(4)           # map from the tracker's first camera frame
         if cfg.pose_source == "orb":
             from .pose import System
             pp = load_params("pose", cfg.preset)
             pp.update(cfg.pose_params)
-            self.tracker = System(camera, pp, threads=False)
             # map is base_link where tracking starts, as the pose node publishes (REP-105)
             from .geometry import parse_transform
-            self.T_map_cam0 = parse_transform(pp.get("base_to_camera", ""))
+            self.tracker = System(camera, pp, threads=False,
+                                  T_map_cam0=parse_transform(pp.get("base_to_camera", "")))
         self.timer = StageTimer()
         self.counts = OrderedDict([("frames_in", 0), ("frames_posed", 0), ("frames_integrated", 0),
                                    ("frames_lost", 0), ("points_published", 0),
@@ -183,15 +182,12 @@ class Pipeline:
             key = "loop_closures" if reason == "loop_closure" else "local_ba_corrections"
             self.counts[key] += 1
             self.timer.time("fusion.corrections", self.map.apply_corrections,
-                            {k: self.T_map_cam0 @ v[1] for k, v in kfs.items()})
+                            {k: v[1] for k, v in kfs.items()})
         T = res.T_map_cam if res.T_map_cam is not None and is_valid_T(res.T_map_cam) else None
-        if T is not None:
-            T = self.T_map_cam0 @ T
         ref = res.keyframe_id if res.is_keyframe and res.keyframe_id >= 0 else res.ref_keyframe_id
         if T is not None and ref is not None and ref >= 0:
             kf_poses = self.tracker.keyframe_poses()
-            self._anchor = ((int(ref), self.T_map_cam0 @ kf_poses[ref][1]) if ref in kf_poses
-                            else (None, None))
+            self._anchor = (int(ref), kf_poses[ref][1]) if ref in kf_poses else (None, None)
         else:
             self._anchor = (None, None)
         return T, res.state, bool(res.is_keyframe)
@@ -201,10 +197,7 @@ class Pipeline:
         """Estimated trajectory: the tracker's (loop-corrected) one, or the ground truth used."""
         from .io import Trajectory
         if self.tracker is not None:
-            traj = self.tracker.trajectory()
-            if len(traj):
-                traj = Trajectory.from_matrices(traj.stamps, self.T_map_cam0[None] @ traj.matrices())
-            return traj
+            return self.tracker.trajectory()
         if not self.poses:
             return Trajectory(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 4)))
         return Trajectory.from_matrices([s for s, _ in self.poses], [T for _, T in self.poses])

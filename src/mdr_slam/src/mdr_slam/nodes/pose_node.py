@@ -285,10 +285,6 @@ class OrbNode:
         self.camera = None
         self.info_key = None
         self.T_map_odom = np.eye(4)
-        # REP-105: map is base_link where tracking starts (z up for a level robot), so the tracker's
-        # poses (first camera frame = identity) are published as T_map_cam0 @ T; base_to_camera
-        # identity (its default) keeps map = the first camera's optical frame
-        self.T_map_cam0 = relay.T_base_cam.copy()
         self.kf_poses = {}                 # last published T_map_kf per keyframe id
         self.last_stamp = None
         self.last_state = "NOT_INITIALIZED"
@@ -410,7 +406,10 @@ class OrbNode:
         if self.system is None:
             from ..pose import System
             with self.lock:
-                self.system = System(cam, self.tracker_params, threads=bool(self.p["threads"]))
+                # REP-105: map is base_link where tracking starts (z up for a level robot);
+                # base_to_camera identity (its default) keeps map = the first camera's frame
+                self.system = System(cam, self.tracker_params, threads=bool(self.p["threads"]),
+                                     T_map_cam0=self.relay.T_base_cam)
         system = self.system
         left, right = cam.rectify(left, right)
         try:
@@ -459,12 +458,8 @@ class OrbNode:
                 "while busy so far)", self.last_state, res.state, stamp.to_sec(), res.n_tracked,
                 res.n_keyframes, self.relay.warn.counts.get("busy", 0))
             self.last_state = res.state
-        # the tracker's poses are in its first camera frame; map is base_link at that frame
-        A = self.T_map_cam0
-        T_map_cam = None if res.T_map_cam is None else A @ res.T_map_cam
         if res.corrections is not None:
             reason, cid, kfs = res.corrections
-            kfs = {k: (s, A @ T) for k, (s, T) in kfs.items()}
             if reason == "loop_closure" and res.ref_keyframe_id in kfs and \
                     res.ref_keyframe_id in self.kf_poses:
                 # the jump goes into map -> odom so odom -> base_link stays continuous (REP-105)
@@ -472,11 +467,11 @@ class OrbNode:
                 new = kfs[res.ref_keyframe_id][1]
                 self.T_map_odom = new @ inv_T(self.kf_poses[res.ref_keyframe_id]) @ self.T_map_odom
             self.publish_keyframes(stamp, _REASON_CODES.get(reason, 1), cid, kfs)
-        if res.is_keyframe and T_map_cam is not None:
+        if res.is_keyframe and res.T_map_cam is not None:
             self.publish_keyframes(stamp, 0, self.system.correction_id,
-                                   {res.keyframe_id: (res.stamp, T_map_cam)})
-        if T_map_cam is not None:
-            self.relay.publish(stamp, T_map_cam, self.T_map_odom)
+                                   {res.keyframe_id: (res.stamp, res.T_map_cam)})
+        if res.T_map_cam is not None:
+            self.relay.publish(stamp, res.T_map_cam, self.T_map_odom)
 
     def publish_keyframes(self, stamp, reason: int, cid: int, kfs: dict) -> None:
         import rospy
@@ -502,10 +497,7 @@ class OrbNode:
         from ..io.trajectory import write_kitti_poses, write_tum
         if self.system is None:
             raise RuntimeError("nothing tracked yet")
-        from ..io import Trajectory
         traj = self.system.trajectory()
-        if len(traj):   # in map, as /mdr/pose (the tracker's are in its first camera frame)
-            traj = Trajectory.from_matrices(traj.stamps, self.T_map_cam0[None] @ traj.matrices())
         fmt = (fmt or ("kitti" if os.path.splitext(path)[1].lower() == ".kitti" else "tum")).lower()
         if fmt not in ("tum", "kitti"):
             raise ValueError("format must be tum or kitti, got %r" % fmt)

@@ -118,7 +118,12 @@ class TrackResult:
 
 
 class System:
-    def __init__(self, camera, params: Optional[dict] = None, threads: bool = True):
+    def __init__(self, camera, params: Optional[dict] = None, threads: bool = True,
+                 T_map_cam0: Optional[np.ndarray] = None):
+        """``T_map_cam0``: the map frame the poses are reported in, as the pose of the first
+        camera (tracking's own world) in it; REP-105 users pass T_base_cam so that map is
+        base_link where tracking starts (z up for a level robot). Default identity: map is the
+        first camera's optical frame. Only outputs change; the tracker works in its own world."""
         p = dict(DEFAULT_PARAMS)
         if params:
             params = {k: v for k, v in params.items() if k not in NODE_KEYS}
@@ -129,6 +134,7 @@ class System:
         self.p = p
         self.camera = camera
         self.threads = bool(threads)
+        self.T_map_world = np.eye(4) if T_map_cam0 is None else np.asarray(T_map_cam0, float)
         self.extractor = ORBextractor(p["n_features"], p["scale_factor"], p["n_levels"],
                                       p["fast_threshold"],
                                       min_fast_threshold=p["min_fast_threshold"])
@@ -248,7 +254,7 @@ class System:
                 while kf.bad and kf.parent is not None:
                     T_c_ref = T_c_ref @ kf.T_cp
                     kf = kf.parent
-                T_map_cam = inv_T(T_c_ref @ kf.T_cw)
+                T_map_cam = self.T_map_world @ inv_T(T_c_ref @ kf.T_cw)
         return TrackResult(
             stamp=float(stamp), state=state,
             T_map_cam=T_map_cam,
@@ -280,7 +286,7 @@ class System:
             for k in sorted(moved):
                 kf = self.map.keyframes.get(k)
                 if kf is not None and not kf.bad:
-                    out[k] = (kf.stamp, inv_T(kf.T_cw))
+                    out[k] = (kf.stamp, self.T_map_world @ inv_T(kf.T_cw))
             # culled keyframes follow their surviving ancestor (ORB-SLAM2 keeps T_cp for the
             # trajectory): depth and fusion anchored data on them when they were alive, and
             # without this those points stayed where the old pose put them (doubled walls after
@@ -292,13 +298,14 @@ class System:
                 while a is not None and a.bad and a.T_cp is not None:
                     T, a = T @ a.T_cp, a.parent
                 if a is not None and a.id in out:
-                    out[kf.id] = (kf.stamp, inv_T(T @ a.T_cw))
+                    out[kf.id] = (kf.stamp, self.T_map_world @ inv_T(T @ a.T_cw))
         return (reason, self.correction_id, out)
 
     def keyframe_poses(self) -> Dict[int, Tuple[float, np.ndarray]]:
         """{kf_id: (stamp, T_map_kf)} of every live keyframe (FULL_MAP message)."""
         with self.map.lock:
-            return {k.id: (k.stamp, inv_T(k.T_cw)) for k in self.map.good_keyframes()}
+            return {k.id: (k.stamp, self.T_map_world @ inv_T(k.T_cw))
+                    for k in self.map.good_keyframes()}
 
     def trajectory(self, include_lost: bool = False):
         """Every tracked frame's T_map_cam, recomputed from its reference keyframe's current pose
@@ -314,7 +321,7 @@ class System:
                     T = T @ kf.T_cp
                     kf = kf.parent
                 stamps.append(stamp)
-                Ts.append(inv_T(T @ kf.T_cw))
+                Ts.append(self.T_map_world @ inv_T(T @ kf.T_cw))
         return Trajectory.from_matrices(stamps, np.array(Ts).reshape(-1, 4, 4))
 
     def reset(self) -> None:
