@@ -22,6 +22,9 @@ filter needs no more, and on a 2-core robot the tracker needs the CPU more. Whil
 reports LOST (``~tracking_state_topic``), pairs are skipped too: they would get no pose, and the
 CPU is better spent on relocalization.
 Bad input is logged (throttled, one line per kind) and skipped; the node never dies on input.
+A bag loop (the clock jumping back) resets the filter and the tf buffer; pairs and transforms
+stamped more than ``~max_future_stamp`` ahead of the clock (the old lap's last ones, delivered
+after the jump) are dropped, so no pose is interpolated across the jump (tests/test_time_jump.py).
 
 Memory in long runs: the node's ~20 threads (the two workers, rospy's per-connection receivers,
 timers) allocate in up to 16 glibc malloc arenas. The slow RSS creep of a looped live run
@@ -47,7 +50,8 @@ from typing import Optional
 
 import numpy as np
 
-from .common import ClockWatch, StampGuard, StampRateLimiter, Throttled, get_params
+from .common import (ClockWatch, StampGuard, StampRateLimiter, Throttled, get_params,
+                     skip_future_stamp, transform_listener)
 from .health import update_diagnostics
 
 DEFAULTS = {
@@ -56,6 +60,7 @@ DEFAULTS = {
     "use_tf": True,                 # pose from tf2; False: from pose_source_topic
     "pose_source_topic": "/mdr/pose",
     "tf_timeout": 0.1,              # s to wait for tf / for the pose of an image stamp
+    "max_future_stamp": 1.0,        # s (sim time): pairs and tf stamped further ahead of the clock are dropped
     "max_rate": 0.0,                # Hz of pairs processed (by stamp); 0 = every pair
     "tracking_state_topic": "/mdr/tracking_state",   # skip pairs while LOST ("" = never)
     "pose_max_gap": 0.25,           # s between two cached poses to interpolate between them
@@ -90,7 +95,7 @@ class DepthNode:
         self.fixed_camera = None
         self.depth_params = {k: p[k] for k in DEPTH_DEFAULTS}
         self.counts = {"received": 0, "processed": 0, "dropped": 0, "skipped": 0, "published": 0,
-                       "throttled": 0, "paused_lost": 0}
+                       "throttled": 0, "paused_lost": 0, "future": 0}
         self.lost_at = None                   # stamp of the pose node's last LOST report
         self.matched = collections.deque()    # ELAS done, waiting for the filter (stamp order)
         self.max_matched = 3                  # more: the filter stage is behind, drop the oldest
@@ -128,7 +133,8 @@ class DepthNode:
         if p["use_tf"]:
             import tf2_ros
             self.tf_buffer = tf2_ros.Buffer(cache_time=rospy.Duration(30.0))
-            self.tf_listener = tf2_ros.TransformListener(self.tf_buffer)
+            self.tf_listener = transform_listener(self.tf_buffer, p["max_future_stamp"], self.warn,
+                                                  "depth_node")
         else:
             from geometry_msgs.msg import PoseStamped
             self.sub_pose = rospy.Subscriber(p["pose_source_topic"], PoseStamped, self.on_pose,
@@ -210,6 +216,8 @@ class DepthNode:
         with self.cv:
             self.counts["received"] += 1
             t = left.header.stamp.to_sec()
+            if self._from_the_future(t):
+                return
             if self.lost_at is not None and abs(t - self.lost_at) < 1.0:
                 self.counts["paused_lost"] += 1   # no pose will come for it
                 return
@@ -220,6 +228,13 @@ class DepthNode:
                 self.counts["dropped"] += 1   # the worker is busy: keep only the newest pair
             self.pending = (left, right, linfo, rinfo, time.monotonic())
             self.cv.notify()
+
+    def _from_the_future(self, t: float) -> bool:
+        """A pair stamped ahead of the clock (the old lap's last pairs after a bag loop): skip."""
+        if skip_future_stamp(t, self.p["max_future_stamp"], self.warn, "depth_node: stereo"):
+            self.counts["future"] += 1
+            return True
+        return False
 
     def on_state(self, msg):
         """The tracker's state per frame: LOST / NOT_INITIALIZED pause matching (see on_images)."""
@@ -346,6 +361,8 @@ class DepthNode:
                     self.depth.reset()
                 self.kf_pending = []
             self.pose_cache.clear()
+            if self.tf_buffer is not None:   # poses of the old timeline must not answer lookups
+                self.tf_buffer.clear()       # of the new one before the listener sees the jump
         if state == "duplicate":
             self.warn("dup", "depth_node: duplicate stamp %.3f; skipped" % t)
             self.counts["skipped"] += 1
@@ -388,6 +405,9 @@ class DepthNode:
         from ..depth import render_depth
         stamp = header.stamp
         t = stamp.to_sec()
+        if self._from_the_future(t):   # matched before the clock jumped back
+            self.counts["skipped"] += 1
+            return
         T = self._pose_at(stamp, frame)
         if T is None:
             self.counts["skipped"] += 1

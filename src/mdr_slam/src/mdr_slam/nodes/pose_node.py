@@ -10,7 +10,8 @@ import threading
 
 import numpy as np
 
-from .common import ClockWatch, StampGuard, Throttled, get_params, parse_transform
+from .common import (ClockWatch, StampGuard, Throttled, get_params, parse_transform,
+                     skip_future_stamp)
 
 DEFAULTS = {
     "source": "orb",
@@ -36,6 +37,7 @@ DEFAULTS = {
     "trajectory_path": "",
     "trajectory_format": "",
     "diagnostics_period": 1.0,
+    "max_future_stamp": 1.0,       # s (sim time): pairs and poses stamped further ahead of the clock are dropped
 }
 
 
@@ -71,6 +73,11 @@ class PoseRelay:
             self.static_tf.sendTransform(matrix_to_transform_stamped(
                 self.T_base_cam, rospy.Time(0), p["base_frame"], p["camera_frame"]))
         self._init_diagnostics()
+
+    def from_the_future(self, t: float, what: str) -> bool:
+        """A message stamped ahead of the clock (the old lap's last ones after a bag loop): its
+        pose would go out into the new lap's tf as a stale entry. Skipped."""
+        return skip_future_stamp(t, float(self.p["max_future_stamp"]), self.warn, what)
 
     # ------------------------------------------------------------------ diagnostics
     def _init_diagnostics(self) -> None:
@@ -173,6 +180,8 @@ class PoseRelay:
         p = self.p
         if not is_valid_T(T_map_cam):
             self.warn("nan", "pose at %.3f is not a finite rigid transform; skipped" % stamp.to_sec())
+            return
+        if self.from_the_future(stamp.to_sec(), "pose"):
             return
         state = self.guard.check(stamp.to_sec())
         jumped = self.clock.jumped()
@@ -351,6 +360,8 @@ class OrbNode:
         return image_to_mono8(msg)   # refuses 16UC1/32FC1 (depth images) and malformed data
 
     def on_stereo(self, left_msg, right_msg, left_info=None, right_info=None):
+        if self.relay.from_the_future(left_msg.header.stamp.to_sec(), "stereo"):
+            return
         if self.slot.put((left_msg, right_msg, left_info, right_info)):
             self.warn("busy", "tracking busy: the oldest waiting stereo pair was dropped",
                       level="info")
