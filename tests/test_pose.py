@@ -955,3 +955,87 @@ def test_optical_flow_carries_tracking_over_a_blank_wall(office_blank_wall, monk
     assert runs[True].count("OK") == len(images), runs[True]
     assert used and min(used) >= 10, used
     assert ate < 0.3, ate        # measured 0.18 m (4 s, from a start on the wall)
+
+
+def _edge_and_spread_points(rng, n=50):
+    """A vertical door edge (y spread 0.3 m, x/z within ~1 cm) and points spread over two walls,
+    both about 1.5 m in front of the origin (#6: the sample's revisit matched only such an edge)."""
+    edge = np.column_stack([rng.randn(n) * 0.03, rng.uniform(-0.5, 0.5, n), 1.5 + rng.randn(n) * 0.01])
+    spread = np.column_stack([rng.uniform(-0.8, 0.8, n), rng.uniform(-0.5, 0.5, n),
+                              np.where(rng.rand(n) < 0.5, 1.5, 2.3)])
+    return edge, spread
+
+
+def test_loop_rotation_sigma_predicts_the_fit_error_and_gates_edge_loops():
+    """A loop whose 3-D inliers lie along one edge leaves the turn about that edge to the noise
+    (#6 sample with the motion prior: 53 correct matches on one edge, loop 8.3 deg off): the
+    predicted rotation sigma matches the spread of real fits, and such a loop is refused unless
+    its turn is several sigmas (a large drift it still reduces), while a spread set is kept."""
+    from mdr_slam.pose.loop_closing import _umeyama_batch, loop_rotation_check, rotation_sigma_deg
+    rng = np.random.RandomState(5)
+    edge, spread = _edge_and_spread_points(rng)
+    S = make_T(Rotation.from_euler("y", 3.0, degrees=True).as_matrix(), [0.05, 0.0, -0.03])
+    noise = 0.01
+    for P, lo, hi in ((edge, 1.0, 20.0), (spread, 0.0, 0.5)):
+        B = P @ S[:3, :3].T + S[:3, 3]
+        A = np.repeat(P[None], 300, 0) + rng.randn(300, len(P), 3) * noise
+        Ts = _umeyama_batch(A, np.repeat(B[None], 300, 0))
+        err = np.degrees(Rotation.from_matrix(np.einsum("ji,hjk->hik", S[:3, :3], Ts[:, :3, :3])).magnitude())
+        sig = rotation_sigma_deg(B, np.linalg.norm(A[0] @ Ts[0, :3, :3].T + Ts[0, :3, 3] - B, axis=1))
+        assert lo < sig < hi, sig
+        rms = float(np.sqrt(np.mean(err ** 2)))   # 3-D rotation error: ~sigma along the free axis
+        assert 0.6 * sig < rms < 1.6 * sig, (sig, rms)
+        ok, _, turn = loop_rotation_check(A[0], B, Ts[0], 1.0, 5.0)
+        assert abs(turn - 3.0) < max(3.0 * sig, 0.5)
+        assert ok == (P is spread)
+    # a large correction on the same edge is kept: its error (sigma) is far below the drift
+    big = make_T(Rotation.from_euler("y", 25.0, degrees=True).as_matrix(), [0.4, 0.0, -0.2])
+    B = edge @ big[:3, :3].T + big[:3, 3]
+    A = edge + rng.randn(*edge.shape) * noise
+    T = _umeyama_batch(A[None], B[None])[0]
+    ok, sig, turn = loop_rotation_check(A, B, T, 1.0, 5.0)
+    assert ok and sig > 1.0 and turn > 15.0, (ok, sig, turn)
+    assert loop_rotation_check(A, B, T, 0.0, 5.0)[0]   # 0: off
+
+
+def test_motion_prior_holds_the_pose_on_a_single_small_patch():
+    """Features on one small far patch: a lateral shift and a yaw move them alike, so the pose-only
+    optimization drifts along that direction; the constant-velocity prior (frame.prior) keeps it
+    near the prediction, and it is off by default (motion_prior_acc 0)."""
+    from mdr_slam.pose.system import DEFAULT_PARAMS
+    assert float(DEFAULT_PARAMS["motion_prior_acc"]) == 0.0
+    sig_t, sig_r = 4.0 * 0.05 ** 2, np.radians(120.0) * 0.05 ** 2   # the tested setting at 20 Hz
+    errs = {False: [], True: []}
+    for seed in range(6):
+        rng = np.random.RandomState(seed)
+        n = 40
+        Pw = np.column_stack([rng.uniform(-0.15, 0.15, n), rng.uniform(-0.15, 0.15, n),
+                              6.0 + rng.uniform(-0.05, 0.05, n)])
+        T_true = inv_T(make_T(Rotation.from_rotvec([0.0, 0.05, 0.0]).as_matrix(), [0.1, 0.0, 0.2]))
+        Pc = Pw @ T_true[:3, :3].T + T_true[:3, 3]
+        u = CAM.fx * Pc[:, 0] / Pc[:, 2] + CAM.cx
+        v = CAM.fy * Pc[:, 1] / Pc[:, 2] + CAM.cy
+        for with_prior in (False, True):
+            class F:
+                pass
+            f = F()
+            f.fx, f.fy, f.cx, f.cy, f.bf = CAM.fx, CAM.fy, CAM.cx, CAM.cy, CAM.fx * CAM.baseline
+            r2 = np.random.RandomState(100 + seed)
+            f.uv = np.column_stack([u, v]) + r2.randn(n, 2) * 0.7
+            f.ur = np.full(n, -1.0)   # far: no stereo depth
+            f.octave = np.zeros(n, int)
+            f.inv_level_sigma2 = np.ones(8)
+            f.mp_ids = np.arange(n)
+            f.outlier = np.zeros(n, bool)
+            f.T_cw = T_true.copy()   # tracking starts from the (here exact) prediction
+            f.prior = (T_true.copy(), np.array([1 / sig_t ** 2] * 3 + [1 / sig_r ** 2] * 3)) \
+                if with_prior else None
+            mp = Map()
+            mp.mp_pos = np.asarray(Pw, dtype=float)
+            mp.mp_bad = np.zeros(n, bool)
+            mp.n = n
+            Optimizer.pose_optimization(f, mp)
+            errs[with_prior].append(np.linalg.norm(inv_T(f.T_cw)[:3, 3] - inv_T(T_true)[:3, 3]))
+    free, held = np.mean(errs[False]), np.mean(errs[True])
+    assert free > 0.05, errs[False]           # the ambiguity is real: centimetres to decimetres
+    assert held < 0.02 and held < 0.25 * free, (errs[True], errs[False])

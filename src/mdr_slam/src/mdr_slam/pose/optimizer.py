@@ -269,6 +269,17 @@ def _inv3(A: np.ndarray) -> np.ndarray:
     return C / det[:, None, None]
 
 
+def _log_so3(R: np.ndarray) -> np.ndarray:
+    """Rotation vector of a rotation matrix (angles below pi; cheaper than scipy's Rotation for
+    a single matrix inside the pose-only Gauss-Newton loop)."""
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    c = min(1.0, max(-1.0, 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)))
+    th = float(np.arccos(c))
+    if th < 1e-6:
+        return 0.5 * w
+    return (0.5 * th / np.sin(th)) * w
+
+
 def _exp_se3_left(dx: np.ndarray, T: np.ndarray) -> np.ndarray:
     """[R(dx[3:]) | dx[:3]] @ T with the rotation by Rodrigues' formula (the pose update of the
     pose-only optimization; cheaper than scipy's Rotation for a single vector)."""
@@ -393,7 +404,15 @@ class Optimizer:
     def pose_optimization(frame, map_, rounds: int = 4, iters: int = 10) -> int:
         """Refine ``frame.T_cw`` from its matched map points; sets ``frame.outlier``; returns the
         number of inliers. Rows of the Jacobian are kept as one contiguous (6, 3n) array (u, v
-        and u_R blocks) so each iteration writes rows, not strided columns, and H is one GEMM."""
+        and u_R blocks) so each iteration writes rows, not strided columns, and H is one GEMM.
+
+        Motion prior (not in ORB-SLAM2): when ``frame.prior`` is set to (T_pred, info6) by
+        Tracking (the constant-velocity prediction and the information of [rho, phi]), a residual
+        log(T T_pred^-1) weighted by info6 joins the normal equations. It is weak (sigmas of
+        centimetres / degrees per frame): a frame seeing many features spread over the image
+        ignores it, but when all features lie on one small patch a lateral translation and a yaw
+        move them alike, the visual Hessian is nearly singular along that direction and the pose
+        then follows the smooth motion instead of drifting along it."""
         idx = np.nonzero(frame.mp_ids >= 0)[0]
         ids = frame.mp_ids[idx]
         good = ~map_.mp_bad[ids]
@@ -423,6 +442,11 @@ class Optimizer:
         w3 = np.empty(3 * n)
         has_stereo = bool(np.any(stereo))
         eye6 = 1e-9 * np.eye(6)
+        prior = getattr(frame, "prior", None)
+        if prior is not None:
+            T_pinv = inv_T(prior[0])
+            L_prior = np.asarray(prior[1], dtype=float)
+            eye6 = eye6 + np.diag(L_prior)
 
         def residuals(T):
             Pc = T[:3, :3] @ PwT + T[:3, 3:4]
@@ -467,6 +491,10 @@ class Optimizer:
                 Jw = J * w3
                 H = Jw @ J.T
                 g = Jw @ e
+                if prior is not None:   # r = [t, rotvec] of T T_pred^-1, dr/dx ~ I
+                    D = T @ T_pinv
+                    r = np.concatenate([D[:3, 3], _log_so3(D[:3, :3])])
+                    g = g + L_prior * r
                 try:
                     dx = -np.linalg.solve(H + eye6, g)
                 except np.linalg.LinAlgError:

@@ -70,8 +70,12 @@ DEFAULT_PARAMS = {
     "loop_proximity_min_inliers": 40,   # PnP inliers of the LK tracks (and >= 60 % of them)
     "loop_proximity_weak_inliers": 15,  # > 0: fewer inliers (down to this) when consistent ...
     "loop_proximity_weak_consistency": 2,  # ... with this many previous weak verifications
+    "loop_max_rot_sigma_deg": 1.0,  # a BoW loop whose inliers leave its rotation more uncertain than this ...
+    "loop_rot_significance": 5.0,   # ... is accepted only when it turns the map by this many sigmas (0: off)
     "reloc_candidates": 10,
     "lost_coast_s": 0.5,         # LOST: motion-model tracking from the last tracked frame goes on this long
+    "motion_prior_acc": 0.0,     # pose-only optimization pulled toward the constant-velocity prediction:
+    "motion_prior_ang_acc": 120.0, # sigmas acc * dt^2 (m/s^2) and ang_acc * dt^2 (deg/s^2) (0: off)
     "reloc_max_ms": 60.0,
     "yield_max_ms": 60.0,        # threads: mapping waits at most this long for a frame's tracking (0: off)
     "backpressure_inliers": 80,  # threads: wait for LocalMapping when tracking gets this weak
@@ -94,7 +98,7 @@ NODE_KEYS = {"source", "map_frame", "odom_frame", "base_frame", "camera_frame", 
              "publish_tf", "publish_odom_tf", "path_max_length", "calib", "trajectory_path",
              "trajectory_format", "sync_queue_size", "sync_slop", "threads", "path_period",
              "max_pending", "blas_threads", "cv_threads", "diagnostics_period", "path_min_translation",
-             "path_min_rotation_deg", "pipeline_frames"}
+             "path_min_rotation_deg", "pipeline_frames", "max_future_stamp"}
 
 
 @dataclass

@@ -88,6 +88,10 @@ class Tracking:
             relocalized = False
             coasting = self.state == LOST and self.can_coast(frame)
             ok = False
+            frame.prior = None
+            if (self.state in (OK, RELOCALIZED) or coasting) and self.velocity is not None and \
+                    frame.id > self.last_reloc_frame_id + 1:
+                frame.prior = self.motion_prior(frame)
             if self.state in (OK, RELOCALIZED) or coasting:
                 if self.velocity is not None and frame.id > self.last_reloc_frame_id + 1:
                     ok = self.track_with_motion_model(frame)
@@ -102,6 +106,7 @@ class Tracking:
                     ok = self.track_local_map_wide(frame) and self.track_local_map(frame)
                 if not ok:
                     ok = self.track_last_frame_pnp(frame) and self.track_local_map(frame)
+            frame.prior = None   # relocalization and the keyframe go without it
             if self.state == LOST and not ok:
                 ok = self.relocalization(frame)
                 relocalized = ok
@@ -193,6 +198,27 @@ class Tracking:
         out[:3, :3] = Rotation.from_rotvec(r * Rotation.from_matrix(V[:3, :3]).as_rotvec()).as_matrix()
         out[:3, 3] = r * V[:3, 3]
         return out
+
+    def motion_prior(self, frame: Frame):
+        """(T_pred, information of [rho, phi]) for Optimizer.pose_optimization, or None when off:
+        the constant-velocity prediction, with the deviation an unmodelled acceleration makes
+        over the frame gap dt as sigmas: ``motion_prior_acc`` (m/s^2) * dt^2 and
+        ``motion_prior_ang_acc`` (deg/s^2) * dt^2 (at 20 Hz the defaults 4 m/s^2 and
+        120 deg/s^2 give 1 cm and 0.3 deg; skipped frames loosen it quadratically). A ground
+        robot's or a walking person's accelerations are around these, so the prior is weak next
+        to a few hundred well-spread features, and decides only what the images leave open
+        (features on one small patch: lateral translation vs yaw)."""
+        acc, ang = float(self.p["motion_prior_acc"]), float(self.p["motion_prior_ang_acc"])
+        last = self.last_frame
+        if acc <= 0 or ang <= 0 or last is None or last.T_cw is None:
+            return None
+        dt = frame.stamp - last.stamp
+        if not dt > 0:
+            dt = self.velocity_dt if self.velocity_dt > 0 else 0.05
+        self._update_last_frame()
+        st, sr = acc * dt * dt, np.radians(ang) * dt * dt
+        info = np.array([1.0 / st ** 2] * 3 + [1.0 / sr ** 2] * 3)
+        return normalize_pose(self.predicted_velocity(frame) @ last.T_cw), info
 
     def can_coast(self, frame: Frame) -> bool:
         """LOST for at most ``lost_coast_s`` since the last tracked frame (not in ORB-SLAM2): the
