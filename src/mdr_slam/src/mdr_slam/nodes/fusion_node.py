@@ -577,6 +577,8 @@ def main():
     import rospy
     from ..fusion import limit_openmp_threads
     rospy.init_node("fusion_node")
+    from .memdebug import start_from_env
+    start_from_env("fusion_node")   # MDR_MEMDEBUG=FILE (%n: node name): memory stats, memdebug.py
     p = get_params(DEFAULTS)
     if p["omp_threads"] > 0:
         limit_openmp_threads(p["omp_threads"])
