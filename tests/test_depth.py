@@ -212,6 +212,35 @@ def test_automatic_keyframe_selection_and_pose_correction():
     assert out.stats.get("reset") == 1 and out.is_new_keyframe
 
 
+def test_keyframe_correction_moves_a_later_keyframe_rigidly_with_the_pose_keyframe():
+    """The depth node skips frames, so the depth keyframe that takes a pose keyframe's event can sit
+    a frame later. A loop closure moving that pose keyframe (T_old -> T_new) must move ours by the
+    same rigid correction, not give it T_new (the pose of the other frame): its points would jump
+    by the camera's motion between the two frames."""
+    from mdr_slam.geometry import make_T
+    from scipy.spatial.transform import Rotation
+    cam = tiny_camera()
+    rng = np.random.default_rng(5)
+    f = DepthFilter(cam, {})
+    T_event = pose(x=0.0)                    # the pose keyframe (a frame the depth node skipped)
+    T_ours = pose(x=0.06, yaw_deg=2.0)       # the next frame: where our keyframe starts
+    for i in range(5):
+        f.process(0.1 * i, T_ours, *noisy_measurement(cam, T_ours, rng), new_keyframe=(i == 0),
+                  keyframe_id=7 if i == 0 else None)
+    assert f.keyframe.id == 7
+    C = make_T(Rotation.from_euler("z", 3.0, degrees=True).as_matrix(), [0.2, -0.1, 0.05])
+    assert not f.correct_keyframe(T_event, C @ T_event, keyframe_id=8)     # not ours
+    assert f.correct_keyframe(T_event, C @ T_event, keyframe_id=7)
+    np.testing.assert_allclose(f.keyframe.T_map_kf, C @ T_ours, atol=1e-9)
+    # replacing the pose instead (the old behaviour) would be off by the motion between the frames
+    assert np.linalg.norm((C @ T_event)[:3, 3] - (C @ T_ours)[:3, 3]) > 0.05
+    # same frame: identical to replacing the pose
+    g = DepthFilter(cam, {})
+    g.process(0.0, T_event, *noisy_measurement(cam, T_event, rng), new_keyframe=True, keyframe_id=3)
+    g.correct_keyframe(T_event, C @ T_event, keyframe_id=3)
+    np.testing.assert_allclose(g.keyframe.T_map_kf, C @ T_event, atol=1e-9)
+
+
 def test_fill_holes_initializes_empty_keyframe_pixels():
     cam = tiny_camera()
     rng = np.random.default_rng(5)

@@ -208,6 +208,20 @@ class DepthFilter:
         self.kf.T_map_kf = np.array(T_map_kf, dtype=float)
         return True
 
+    def correct_keyframe(self, T_old: np.ndarray, T_new: np.ndarray,
+                         keyframe_id: Optional[int] = None) -> bool:
+        """A pose keyframe moved from ``T_old`` to ``T_new`` (loop closure / BA): our keyframe,
+        which took that keyframe's event, moves with it rigidly, ``T_new @ inv(T_old) @ T_map_kf``.
+        Our keyframe can sit a frame or more after the pose keyframe (the depth node skips
+        frames), so its pose is not replaced by ``T_new``: that would put it where the camera was
+        at the other frame. Same stamp: the same as :meth:`set_keyframe_pose` with ``T_new``."""
+        if self.kf is None or (keyframe_id is not None and int(keyframe_id) != self.kf.id):
+            return False
+        if not (is_valid_T(T_old) and is_valid_T(T_new)):
+            raise ValueError("keyframe pose is not a finite rigid transform")
+        return self.set_keyframe_pose(np.asarray(T_new, float) @ inv_T(np.asarray(T_old, float))
+                                      @ self.kf.T_map_kf, keyframe_id)
+
     # ------------------------------------------------------------------ per frame
     def process(self, stamp: float, T_map_cam: np.ndarray, Z: np.ndarray, var: np.ndarray,
                 intensity: Optional[np.ndarray] = None, new_keyframe: Optional[bool] = None,

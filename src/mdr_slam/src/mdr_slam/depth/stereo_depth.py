@@ -78,6 +78,10 @@ class StereoDepth:
     def set_keyframe_pose(self, T_map_kf: np.ndarray, keyframe_id: Optional[int] = None) -> bool:
         return self.filter.set_keyframe_pose(T_map_kf, keyframe_id)
 
+    def correct_keyframe(self, T_old: np.ndarray, T_new: np.ndarray,
+                         keyframe_id: Optional[int] = None) -> bool:
+        return self.filter.correct_keyframe(T_old, T_new, keyframe_id)
+
     def measure(self, left: np.ndarray, right: np.ndarray, rectified: bool = False):
         """(Z, var, left_rectified_grey, timings) of one pair, without the filter."""
         w, h = self.camera.size

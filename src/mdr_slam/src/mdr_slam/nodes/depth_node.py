@@ -109,6 +109,7 @@ class DepthNode:
         self.t_start = time.monotonic()
         self.kf_events_seen = False
         self.kf_pending = []                  # (stamp, id) of keyframes not yet started
+        self.kf_poses = {}                    # id -> last known pose of pending / current keyframes
         self.clock = ClockWatch()             # ROS time jumping back: a new timeline
 
         if p["calib"]:
@@ -260,16 +261,29 @@ class DepthNode:
         with self.lock:
             for kf in msg.keyframes:
                 t = kf.stamp.to_sec()
+                try:
+                    T = pose_to_matrix(kf.pose)
+                except (ConversionError, ValueError) as e:
+                    self.warn("kfpose", "depth_node: keyframe %d skipped: %s" % (kf.id, e))
+                    continue
                 if msg.reason == msg.NEW_KEYFRAME:
                     self.kf_pending.append((t, int(kf.id)))
+                    self.kf_poses[int(kf.id)] = T
                     continue
                 cur = self.depth.filter.keyframe if self.depth is not None else None
-                if cur is None or not (cur.id == kf.id or abs(cur.stamp - t) < 1e-3):
+                if cur is None:
                     continue
+                T_old = self.kf_poses.get(int(kf.id))
                 try:  # loop closure / BA moved our keyframe: its points follow
-                    self.depth.filter.set_keyframe_pose(pose_to_matrix(kf.pose))
-                except (ConversionError, ValueError) as e:
+                    if cur.id == kf.id and T_old is not None:
+                        # ours may sit frames after the pose keyframe: move it rigidly with it
+                        self.depth.filter.correct_keyframe(T_old, T)
+                    elif abs(cur.stamp - t) < 1e-3:   # the same frame: its pose is ours
+                        self.depth.filter.set_keyframe_pose(T)
+                except ValueError as e:
                     self.warn("kfpose", "depth_node: keyframe correction skipped: %s" % e)
+                if int(kf.id) in self.kf_poses:
+                    self.kf_poses[int(kf.id)] = T
 
     # ------------------------------------------------------------------ workers
     def _work_filter(self):
@@ -360,6 +374,7 @@ class DepthNode:
                 if self.depth is not None:
                     self.depth.reset()
                 self.kf_pending = []
+                self.kf_poses = {}
             self.pose_cache.clear()
             if self.tf_buffer is not None:   # poses of the old timeline must not answer lookups
                 self.tf_buffer.clear()       # of the new one before the listener sees the jump
@@ -423,6 +438,8 @@ class DepthNode:
                 if due:
                     new_kf, kf_id = True, due[-1][1]
                     self.kf_pending = [k for k in self.kf_pending if k[0] > t + 1e-4]
+                    keep = {k[1] for k in self.kf_pending} | {kf_id}
+                    self.kf_poses = {k: v for k, v in self.kf_poses.items() if k in keep}
             try:
                 out = depth.update(t, meas, T, new_keyframe=new_kf, keyframe_id=kf_id)
             except ValueError as e:
