@@ -67,6 +67,9 @@ def main():
     ap.add_argument("--gt-map", default=None, help="default: gt_map.ply beside the bag")
     ap.add_argument("--cache", default=os.path.join(ROOT, "output", "fusion_laps", "clouds.npz"))
     ap.add_argument("--laps", type=int, default=20)
+    ap.add_argument("--passes", type=int, default=6,
+                    help="depth passes over the bag when the cache is built (later laps cycle "
+                         "through passes 2..N with a random --keep share of their clouds)")
     ap.add_argument("--keep", type=float, default=0.65, help="share of clouds integrated per lap")
     ap.add_argument("--wrap", action="store_true",
                     help="stamps jump back each lap (a looping bag) instead of increasing")
@@ -83,7 +86,7 @@ def main():
     from mdr_slam.io import read_cloud
     from mdr_slam.pipeline import load_params
     if not os.path.exists(args.cache):
-        build_cache(args.bag, args.cache)
+        build_cache(args.bag, args.cache, passes=args.passes)
     with np.load(args.cache) as z:
         d = {k: z[k] for k in z.files}  # an NpzFile re-reads an array on every access
     off = np.concatenate([[0], np.cumsum(d["n"])])

@@ -69,6 +69,7 @@ DEFAULTS = {
     "confidence": True,             # false: plain voxel grid (ablation)
     "min_confidence": 3,
     "grace": 5.0,
+    "min_span": 0.0,                # s a point must be seen over (first to last sighting) in its grace
     "min_view_ratio": 0.0,          # > 0: ... and seen in this share of the clouds that had it in view
     "view_window": 120.0,           # s of views counted per point before the ratio test (>= grace)
     "view_bin": 0.01,               # direction bin (x/z, y/z) of the in-view test's depth image
