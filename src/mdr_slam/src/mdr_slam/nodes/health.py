@@ -11,7 +11,27 @@ import threading
 import time
 from collections import deque
 
-__all__ = ["ProcessHealth", "RateWindow", "rss_bytes"]
+__all__ = ["ProcessHealth", "RateWindow", "rss_bytes", "trim_heap"]
+
+_LIBC = None
+
+
+def trim_heap() -> bool:
+    """Give the heap's free pages back to the system (glibc ``malloc_trim(0)``; False where that
+    is not available). A node that allocates and frees large buffers per message from several
+    threads (clouds of ~8k points, depth images) leaves free memory spread over malloc's arenas,
+    which RSS keeps counting: a long run's RSS then creeps although the memory in use is flat
+    (fusion node, 9-minute looped run: malloc in use ~70 MB flat, RSS +0.1 MB/min)."""
+    global _LIBC
+    try:
+        if _LIBC is None:
+            import ctypes
+            import ctypes.util
+            _LIBC = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        return bool(_LIBC.malloc_trim(0))
+    except (OSError, AttributeError):
+        _LIBC = False
+        return False
 
 
 def rss_bytes() -> int:
@@ -28,8 +48,10 @@ class ProcessHealth:
     """CPU % (of one core, over the interval since the previous call, like ``top``) and RSS of
     this process."""
 
-    def __init__(self):
+    def __init__(self, trim_period: float = 60.0):
         self._proc = None
+        self.trim_period = float(trim_period)  # s between two trim_heap calls (0 = never)
+        self._last_trim = time.monotonic()
         try:
             import psutil
             self._proc = psutil.Process()
@@ -49,6 +71,10 @@ class ProcessHealth:
         stat.add("cpu_percent", "%.1f" % self.cpu_percent())
         stat.add("rss_mb", "%.1f" % self.rss_mb())
         stat.add("threads", str(threading.active_count()))
+        now = time.monotonic()
+        if self.trim_period > 0 and now - self._last_trim >= self.trim_period:
+            self._last_trim = now
+            trim_heap()
 
 
 class RateWindow:
