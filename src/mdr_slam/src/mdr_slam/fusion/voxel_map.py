@@ -620,7 +620,7 @@ class VoxelMap:
         if self._t_last is not None and t < self._t_last:
             self._time_offset += self._t_last - t + _TIME_STEP
             t = float(stamp) + self._time_offset
-        self._t_last = t if self._t_last is None else max(self._t_last, t)
+        self._t_last = t  # >= the previous one by construction
         return t
 
     def _count_views(self, Pc: np.ndarray, T: np.ndarray, hits: np.ndarray) -> None:

@@ -23,6 +23,8 @@ def trim_heap() -> bool:
     which RSS keeps counting: a long run's RSS then creeps although the memory in use is flat
     (fusion node, 9-minute looped run: malloc in use ~70 MB flat, RSS +0.1 MB/min)."""
     global _LIBC
+    if _LIBC is False:  # looked for before and not there (not glibc)
+        return False
     try:
         if _LIBC is None:
             import ctypes
@@ -46,7 +48,8 @@ def rss_bytes() -> int:
 
 class ProcessHealth:
     """CPU % (of one core, over the interval since the previous call, like ``top``) and RSS of
-    this process."""
+    this process. :meth:`add_to` also calls :func:`trim_heap` every ``trim_period`` seconds, so
+    every node's RSS follows its memory in use."""
 
     def __init__(self, trim_period: float = 60.0):
         self._proc = None
