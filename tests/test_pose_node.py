@@ -201,3 +201,76 @@ def test_orb_node_drops_stale_frames_when_busy(rospy_client, start_process):
     assert len(states) + n_drop <= len(frames)
     assert [s.header.stamp for s in states] == sorted(s.header.stamp for s in states)
     assert all(s.state == TrackingState.OK for s in states), [s.state for s in states]
+
+
+def _orbslam3_available():
+    from mdr_slam.pose.orbslam3 import available
+    return available()
+
+
+@pytest.mark.parametrize("variant", ["orbslam3", "orbslam3_missing"])
+def test_orb_node_with_the_orbslam3_backend_or_without_it(rospy_client, start_process, tmp_path,
+                                                          variant):
+    """``backend: orbslam3`` (launch arg pose_backend): ORB-SLAM3's C++ tracker behind the same
+    topics. Where pyorbslam3 cannot be imported (stubbed here) the node says so and tracks with
+    the built-in tracker: an optional backend never stops the robot."""
+    if variant == "orbslam3" and not _orbslam3_available():
+        pytest.skip("pyorbslam3 is not installed")
+    rospy = rospy_client
+    from mdr_slam import conversions as cv
+    from mdr_slam.camera import StereoCamera
+    from mdr_slam.geometry import inv_T
+    from mdr_slam.pose.synthetic import BoxRoom, orbit_trajectory
+    from mdr_slam_msgs.msg import TrackingState
+    from geometry_msgs.msg import PoseStamped
+    from sensor_msgs.msg import CameraInfo, Image
+
+    cam = StereoCamera.from_rectified(640, 480, 400.0, 400.0, 320.0, 240.0, 0.12)
+    room = BoxRoom((3.0, 1.5, 3.0), tex_size=1024, seed=3)
+    poses = orbit_trajectory(16, radius=1.0, arc=np.pi / 4)
+    frames = [room.render_stereo(T, cam) for T in poses]
+    env = []
+    if variant == "orbslam3_missing":
+        stub = tmp_path / "stub" / "pyorbslam3"
+        stub.mkdir(parents=True)
+        (stub / "__init__.py").write_text("raise ImportError('stubbed away by the test')\n")
+        env = ["env", "PYTHONPATH=%s:%s" % (stub.parent, os.environ.get("PYTHONPATH", ""))]
+    traj_path = str(tmp_path / "exit.txt")
+    node = start_process(env + ["rosrun", "mdr_slam", "pose_node", "_source:=orb", "_threads:=false",
+                                "_backend:=orbslam3", "_n_features:=1500", "__name:=o3_test",
+                                "_trajectory_path:=" + traj_path,
+                                "left/image:=/o3/left/image", "right/image:=/o3/right/image",
+                                "left/camera_info:=/o3/left/info",
+                                "right/camera_info:=/o3/right/info"], "o3")
+    got, states = [], []
+    subs = [rospy.Subscriber("/mdr/pose", PoseStamped, got.append),
+            rospy.Subscriber("/mdr/tracking_state", TrackingState, states.append)]
+    pubs = {n: rospy.Publisher("/o3/%s" % n, t, queue_size=20) for n, t in
+            (("left/image", Image), ("right/image", Image), ("left/info", CameraInfo),
+             ("right/info", CameraInfo))}
+    assert wait_for(lambda: all(p.get_num_connections() > 0 for p in pubs.values()) and
+                    all(s.get_num_connections() > 0 for s in subs), 30), node.output()
+    base = rospy.Time.now()
+    li = cv.model_to_camera_info(cam.left, frame_id="cam")
+    ri = cv.model_to_camera_info(cam.right, frame_id="cam")
+    for i, (l, r) in enumerate(frames):
+        stamp = base + rospy.Duration(0.1 * (i + 1))
+        for msg, name in ((li, "left/info"), (ri, "right/info")):
+            msg.header.stamp = stamp
+            pubs[name].publish(msg)
+        pubs["left/image"].publish(cv.numpy_to_image(l, "mono8", stamp, "cam"))
+        pubs["right/image"].publish(cv.numpy_to_image(r, "mono8", stamp, "cam"))
+        assert wait_for(lambda: len(states) >= i + 1, 30), node.output()
+    assert node.proc.poll() is None, node.output()
+    ok = [s.state for s in states].count(TrackingState.OK)
+    assert ok >= len(frames) - 2 and wait_for(lambda: len(got) == ok, 5), node.output()
+    T_est = cv.pose_stamped_to_matrix(got[-1])
+    T_true = inv_T(poses[0]) @ poses[-1]
+    assert np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]) < 0.05, (T_est, T_true)
+    log = node.output()
+    if variant == "orbslam3_missing":
+        assert "backend 'orbslam3' unavailable" in log and "stubbed away" in log
+    else:
+        assert "unavailable" not in log and "ORB-SLAM" in log
+    node.stop()
+    assert os.path.exists(traj_path) and len(np.loadtxt(traj_path)) == ok

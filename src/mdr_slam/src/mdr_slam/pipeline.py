@@ -122,13 +122,13 @@ class Pipeline:
         self.map = VoxelMap(fp)
         self.tracker = None
         if cfg.pose_source == "orb":
-            from .pose import System
+            from .pose import make_system
             pp = load_params("pose", cfg.preset)
             pp.update(cfg.pose_params)
             # map is base_link where tracking starts, as the pose node publishes (REP-105)
             from .geometry import parse_transform
-            self.tracker = System(camera, pp, threads=False,
-                                  T_map_cam0=parse_transform(pp.get("base_to_camera", "")))
+            self.tracker = make_system(camera, pp, threads=False,
+                                       T_map_cam0=parse_transform(pp.get("base_to_camera", "")))
         self.timer = StageTimer()
         self.counts = OrderedDict([("frames_in", 0), ("frames_posed", 0), ("frames_integrated", 0),
                                    ("frames_lost", 0), ("points_published", 0),

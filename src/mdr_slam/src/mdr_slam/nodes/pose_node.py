@@ -415,12 +415,20 @@ class OrbNode:
                 self.kf_poses = {}
         self.last_stamp = t
         if self.system is None:
-            from ..pose import System
+            from ..pose import System, make_system
             with self.lock:
                 # REP-105: map is base_link where tracking starts (z up for a level robot);
                 # base_to_camera identity (its default) keeps map = the first camera's frame
-                self.system = System(cam, self.tracker_params, threads=bool(self.p["threads"]),
-                                     T_map_cam0=self.relay.T_base_cam)
+                args = dict(threads=bool(self.p["threads"]), T_map_cam0=self.relay.T_base_cam)
+                try:
+                    self.system = make_system(cam, self.tracker_params, **args)
+                except (ImportError, OSError, ValueError, RuntimeError) as e:
+                    # an optional backend that cannot start must not stop the robot
+                    import rospy
+                    rospy.logerr("pose_node: backend %r unavailable (%s): using the built-in "
+                                 "tracker", self.tracker_params.get("backend"), e)
+                    self.tracker_params["backend"] = "mdr"
+                    self.system = System(cam, self.tracker_params, **args)
         system = self.system
         left, right = cam.rectify(left, right)
         try:

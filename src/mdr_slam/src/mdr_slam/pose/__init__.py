@@ -1,7 +1,9 @@
 """Node 1 core: ORB-SLAM2-style stereo visual SLAM (Frame, KeyFrame, MapPoint, Map, Tracking,
 LocalMapping, LoopClosing, ORBmatcher, Optimizer, KeyFrameDatabase, System).
 
-Entry point: :class:`System` (see mdr_slam.pose.system). ROS-free.
+Entry point: :class:`System` (see mdr_slam.pose.system), or :func:`make_system` for the tracker
+the ``backend`` parameter names (``orbslam3``: ORB-SLAM3's C++ tracker, mdr_slam.pose.orbslam3).
+ROS-free.
 """
 from __future__ import annotations
 
@@ -10,10 +12,10 @@ from .map import KeyFrame, Map, MapPoint
 from .matcher import ORBmatcher
 from .optimizer import Optimizer
 from .orb import ORBextractor
-from .system import DEFAULT_PARAMS, System, TrackResult
+from .system import DEFAULT_PARAMS, System, TrackResult, make_system
 from .tracking import LOST, NOT_INITIALIZED, OK, RELOCALIZED, Tracking
 from .local_mapping import LocalMapping
 
 __all__ = ["Frame", "KeyFrame", "Map", "MapPoint", "ORBmatcher", "Optimizer", "ORBextractor",
-           "System", "TrackResult", "DEFAULT_PARAMS", "Tracking", "LocalMapping",
+           "System", "TrackResult", "DEFAULT_PARAMS", "make_system", "Tracking", "LocalMapping",
            "compute_stereo_matches", "NOT_INITIALIZED", "OK", "LOST", "RELOCALIZED"]

@@ -25,9 +25,11 @@ from .map import Map
 from .orb import ORBextractor
 from .tracking import LOST, NOT_INITIALIZED, OK, RELOCALIZED, Tracking
 
-__all__ = ["System", "TrackResult", "DEFAULT_PARAMS"]
+__all__ = ["System", "TrackResult", "DEFAULT_PARAMS", "make_system"]
 
 DEFAULT_PARAMS = {
+    "backend": "mdr",            # mdr (this tracker) or orbslam3 (ORB-SLAM3's C++ tracker via pyorbslam3)
+    "orbslam3_vocabulary": "",   # orbslam3: DBoW2 text vocabulary (ORBvoc.txt); empty: ours, exported
     "n_features": 1500,          # ORB features per image (ORB-SLAM2 EuRoC/KITTI: 1200-2000)
     "scale_factor": 1.2,
     "n_levels": 8,
@@ -347,3 +349,22 @@ class System:
     @property
     def state(self) -> str:
         return self.tracking.state
+
+
+def make_system(camera, params: Optional[dict] = None, threads: bool = True,
+                T_map_cam0: Optional[np.ndarray] = None):
+    """The tracker ``params["backend"]`` names: :class:`System` (``mdr``, the default) or
+    :class:`~mdr_slam.pose.orbslam3.ORBSLAM3System` (``orbslam3``; needs pyorbslam3, else
+    ImportError). Both take the same arguments and answer the same calls."""
+    backend = str((params or {}).get("backend", "mdr") or "mdr").lower()
+    if backend == "mdr":
+        return System(camera, params, threads=threads, T_map_cam0=T_map_cam0)
+    if backend == "orbslam3":
+        from .orbslam3 import ORBSLAM3System, available, import_error
+        if not available():
+            raise ImportError("pose backend orbslam3 needs the pyorbslam3 package "
+                              "(pip install pyorbslam3; x86-64 Linux, Python >= 3.9): %s"
+                              % import_error())
+        p = {k: v for k, v in (params or {}).items() if k not in NODE_KEYS}
+        return ORBSLAM3System(camera, p, threads=threads, T_map_cam0=T_map_cam0)
+    raise ValueError("pose backend must be mdr or orbslam3, not %r" % backend)
