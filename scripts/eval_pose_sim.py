@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Robustness and accuracy of the pose core (mdr_slam.pose.System) on simulated sequences.
 
-    python scripts/eval_pose_sim.py [--out output/eval_pose_sim] [--sequences office_loop,...]
+    python scripts/eval_pose_sim.py [--out output/eval_pose_sim] [--sequences office_loop,office_loop@5,...]
                                     [--scale 1.0] [--rate 20] [--json FILE] [--no-compare]
 
 Every sequence is rendered once by ``mdr_slam.sim.generate`` (752x480 at 20 Hz by default; an
@@ -99,10 +99,11 @@ def first_pose_errors(est, gt):
 
 def track(bag: str, params: dict) -> dict:
     from mdr_slam.pipeline import frames_from_bag
-    from mdr_slam.pose import System
+    from mdr_slam.pose import make_system
     camera, frames = frames_from_bag(bag)
-    system = System(camera, params, threads=False)
+    system = make_system(camera, params, threads=False)   # backend=orbslam3: ORB-SLAM3's tracker
     stamps, states, ms = [], [], []
+    r = None
     try:
         for f in frames:
             r = system.track(f.stamp, f.left, f.right)
@@ -110,13 +111,15 @@ def track(bag: str, params: dict) -> dict:
             states.append(r.state)
             ms.append(r.time_ms)
         traj = system.trajectory()
-        n_loops = int(system.map.n_loop_closures)
-        lc = system.loop_closing
+        mp = getattr(system, "map", None)
+        n_loops = int(mp.n_loop_closures) if mp is not None else \
+            (int(r.n_loop_closures) if r is not None else 0)
+        lc = getattr(system, "loop_closing", None)
         gba = [{k: v for k, v in g.items() if k != "moved"}
                for g in (getattr(lc, "global_ba_runs", []) if lc is not None else [])]
         loops = [list(x) for x in lc.loops] if lc is not None else []
         prox = [list(x) for x in getattr(lc, "proximity_loops", [])] if lc is not None else []
-        n_kfs = len(system.map.good_keyframes())
+        n_kfs = len(mp.good_keyframes()) if mp is not None else 0
     finally:
         system.shutdown()
     return {"stamps": np.array(stamps), "states": states, "traj": traj, "loops": n_loops,
@@ -130,7 +133,11 @@ def evaluate(name: str, out: str, rate: float, scale: float, compare: bool,
     from mdr_slam.eval import ate
     from mdr_slam.io import read_tum, write_tum
     from mdr_slam.pipeline import load_params
-    scene, kind, duration, seed, loop_seq = SEQUENCES[name]
+    base, _, seed_arg = name.partition("@")
+    scene, kind, duration, seed, loop_seq = SEQUENCES[base]
+    if seed_arg:   # NAME@SEED: the same sequence rendered with another noise seed
+        seed = int(seed_arg)
+        name = "%s_seed%d" % (base, seed)
     d = os.path.join(out, name)
     rinfo = render(d, scene, kind, duration, seed, rate, scale)
     with open(os.path.join(d, "scene.yaml")) as f:
@@ -221,7 +228,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", default=os.path.join(ROOT, "output", "eval_pose_sim"))
     ap.add_argument("--sequences", default=DEFAULT,
-                    help="comma-separated, of: %s" % ", ".join(SEQUENCES))
+                    help="comma-separated, of: %s; NAME@SEED renders NAME with another noise "
+                    "seed (several seeds give the spread of a chaotic figure)" % ", ".join(SEQUENCES))
     ap.add_argument("--rate", type=float, default=20.0)
     ap.add_argument("--scale", type=float, default=1.0, help="image scale (1: 752x480)")
     ap.add_argument("--no-compare", action="store_true",
@@ -231,7 +239,8 @@ def main(argv=None) -> int:
                     help="override a pose parameter of config/pose.yaml (repeatable), e.g. ba_tol=0")
     a = ap.parse_args(argv)
     names = [s.strip() for s in a.sequences.split(",") if s.strip()]
-    bad = [n for n in names if n not in SEQUENCES]
+    bad = [n for n in names if n.partition("@")[0] not in SEQUENCES or
+           not (n.partition("@")[2] or "0").isdigit()]
     if bad:
         ap.error("unknown sequences %s (known: %s)" % (bad, ", ".join(SEQUENCES)))
     import yaml
