@@ -12,6 +12,28 @@ from conftest import wait_for
 pytestmark = pytest.mark.ros
 
 
+def _stereo_rig(rospy, prefix, cam, subs, node):
+    """Publishers of a stereo pair and its camera_info under ``prefix``, once they and ``subs``
+    are connected; returns send(left, right, stamp)."""
+    from mdr_slam import conversions as cv
+    from sensor_msgs.msg import CameraInfo, Image
+    pubs = {n: rospy.Publisher("%s/%s" % (prefix, n), t, queue_size=20) for n, t in
+            (("left/image", Image), ("right/image", Image), ("left/info", CameraInfo),
+             ("right/info", CameraInfo))}
+    assert wait_for(lambda: all(p.get_num_connections() > 0 for p in pubs.values()) and
+                    all(s.get_num_connections() > 0 for s in subs), 30), node.output()
+    li = cv.model_to_camera_info(cam.left, frame_id="cam")
+    ri = cv.model_to_camera_info(cam.right, frame_id="cam")
+
+    def send(left, right, stamp):
+        for msg, name in ((li, "left/info"), (ri, "right/info")):
+            msg.header.stamp = stamp
+            pubs[name].publish(msg)
+        pubs["left/image"].publish(cv.numpy_to_image(left, "mono8", stamp, "cam"))
+        pubs["right/image"].publish(cv.numpy_to_image(right, "mono8", stamp, "cam"))
+    return send
+
+
 # a camera 1.2 m above base_link, looking ahead and pitched 10 deg down (x y z qx qy qz qw)
 _MOUNT = "0.2 0 1.2 -0.5416 0.5416 -0.4545 0.4545"
 
@@ -30,7 +52,6 @@ def test_orb_node_tracks_synthetic_stream(rospy_client, start_process, tmp_path,
     from mdr_slam_msgs.msg import KeyFrameArray, TrackingState
     from mdr_slam_msgs.srv import SaveTrajectory
     from geometry_msgs.msg import PoseStamped
-    from sensor_msgs.msg import CameraInfo, Image
 
     cam = StereoCamera.from_rectified(480, 320, 300.0, 300.0, 240.0, 160.0, 0.12)
     room = BoxRoom((3.0, 1.5, 3.0), tex_size=768, seed=3)
@@ -48,21 +69,11 @@ def test_orb_node_tracks_synthetic_stream(rospy_client, start_process, tmp_path,
     subs = [rospy.Subscriber("/mdr/pose", PoseStamped, got.append),
             rospy.Subscriber("/mdr/tracking_state", TrackingState, states.append),
             rospy.Subscriber("/mdr/keyframes", KeyFrameArray, kfs.append)]
-    pubs = {n: rospy.Publisher("/t/%s" % n, t, queue_size=20) for n, t in
-            (("left/image", Image), ("right/image", Image), ("left/info", CameraInfo),
-             ("right/info", CameraInfo))}
-    assert wait_for(lambda: all(p.get_num_connections() > 0 for p in pubs.values()) and
-                    all(s.get_num_connections() > 0 for s in subs), 30), node.output()
+    rig = _stereo_rig(rospy, "/t", cam, subs, node)
     base = rospy.Time.now()
-    li = cv.model_to_camera_info(cam.left, frame_id="cam")
-    ri = cv.model_to_camera_info(cam.right, frame_id="cam")
 
     def send(i, left, right, stamp):
-        for msg, name in ((li, "left/info"), (ri, "right/info")):
-            msg.header.stamp = stamp
-            pubs[name].publish(msg)
-        pubs["left/image"].publish(cv.numpy_to_image(left, "mono8", stamp, "cam"))
-        pubs["right/image"].publish(cv.numpy_to_image(right, "mono8", stamp, "cam"))
+        rig(left, right, stamp)
 
     for i, (l, r) in enumerate(frames):
         send(i, l, r, base + rospy.Duration(0.1 * (i + 1)))
@@ -223,7 +234,6 @@ def test_orb_node_with_the_orbslam3_backend_or_without_it(rospy_client, start_pr
     from mdr_slam.pose.synthetic import BoxRoom, orbit_trajectory
     from mdr_slam_msgs.msg import TrackingState
     from geometry_msgs.msg import PoseStamped
-    from sensor_msgs.msg import CameraInfo, Image
 
     cam = StereoCamera.from_rectified(640, 480, 400.0, 400.0, 320.0, 240.0, 0.12)
     room = BoxRoom((3.0, 1.5, 3.0), tex_size=1024, seed=3)
@@ -245,21 +255,10 @@ def test_orb_node_with_the_orbslam3_backend_or_without_it(rospy_client, start_pr
     got, states = [], []
     subs = [rospy.Subscriber("/mdr/pose", PoseStamped, got.append),
             rospy.Subscriber("/mdr/tracking_state", TrackingState, states.append)]
-    pubs = {n: rospy.Publisher("/o3/%s" % n, t, queue_size=20) for n, t in
-            (("left/image", Image), ("right/image", Image), ("left/info", CameraInfo),
-             ("right/info", CameraInfo))}
-    assert wait_for(lambda: all(p.get_num_connections() > 0 for p in pubs.values()) and
-                    all(s.get_num_connections() > 0 for s in subs), 30), node.output()
+    send = _stereo_rig(rospy, "/o3", cam, subs, node)
     base = rospy.Time.now()
-    li = cv.model_to_camera_info(cam.left, frame_id="cam")
-    ri = cv.model_to_camera_info(cam.right, frame_id="cam")
     for i, (l, r) in enumerate(frames):
-        stamp = base + rospy.Duration(0.1 * (i + 1))
-        for msg, name in ((li, "left/info"), (ri, "right/info")):
-            msg.header.stamp = stamp
-            pubs[name].publish(msg)
-        pubs["left/image"].publish(cv.numpy_to_image(l, "mono8", stamp, "cam"))
-        pubs["right/image"].publish(cv.numpy_to_image(r, "mono8", stamp, "cam"))
+        send(l, r, base + rospy.Duration(0.1 * (i + 1)))
         assert wait_for(lambda: len(states) >= i + 1, 30), node.output()
     assert node.proc.poll() is None, node.output()
     ok = [s.state for s in states].count(TrackingState.OK)
