@@ -12,12 +12,12 @@ from conftest import wait_for
 pytestmark = pytest.mark.ros
 
 
-def _stereo_rig(rospy, prefix, cam, subs, node):
+def _stereo_rig(rospy, prefix, cam, subs, node, queue_size=20):
     """Publishers of a stereo pair and its camera_info under ``prefix``, once they and ``subs``
     are connected; returns send(left, right, stamp)."""
     from mdr_slam import conversions as cv
     from sensor_msgs.msg import CameraInfo, Image
-    pubs = {n: rospy.Publisher("%s/%s" % (prefix, n), t, queue_size=20) for n, t in
+    pubs = {n: rospy.Publisher("%s/%s" % (prefix, n), t, queue_size=queue_size) for n, t in
             (("left/image", Image), ("right/image", Image), ("left/info", CameraInfo),
              ("right/info", CameraInfo))}
     assert wait_for(lambda: all(p.get_num_connections() > 0 for p in pubs.values()) and
@@ -155,11 +155,9 @@ def test_orb_node_drops_stale_frames_when_busy(rospy_client, start_process):
     (counted in /diagnostics), and the frames after a gap are still tracked (motion model dt)."""
     rospy = rospy_client
     from diagnostic_msgs.msg import DiagnosticArray
-    from mdr_slam import conversions as cv
     from mdr_slam.camera import StereoCamera
     from mdr_slam.pose.synthetic import BoxRoom, orbit_trajectory
     from mdr_slam_msgs.msg import TrackingState
-    from sensor_msgs.msg import CameraInfo, Image
 
     cam = StereoCamera.from_rectified(480, 320, 300.0, 300.0, 240.0, 160.0, 0.12)
     room = BoxRoom((3.0, 1.5, 3.0), tex_size=768, seed=3)
@@ -173,22 +171,12 @@ def test_orb_node_drops_stale_frames_when_busy(rospy_client, start_process):
     states, diags = [], []
     subs = [rospy.Subscriber("/mdr/tracking_state", TrackingState, states.append),
             rospy.Subscriber("/diagnostics", DiagnosticArray, diags.append)]
-    pubs = {n: rospy.Publisher("/b/%s" % n, t, queue_size=100) for n, t in
-            (("left/image", Image), ("right/image", Image), ("left/info", CameraInfo),
-             ("right/info", CameraInfo))}
-    assert wait_for(lambda: all(p.get_num_connections() > 0 for p in pubs.values()) and
-                    all(s.get_num_connections() > 0 for s in subs), 30), node.output()
-    li = cv.model_to_camera_info(cam.left, frame_id="cam")
-    ri = cv.model_to_camera_info(cam.right, frame_id="cam")
+    rig = _stereo_rig(rospy, "/b", cam, subs, node, queue_size=100)
     base = rospy.Time.now()
     stamps = [base + rospy.Duration(0.05 * (i + 1)) for i in range(len(frames))]
 
     def send(i):
-        for msg, name in ((li, "left/info"), (ri, "right/info")):
-            msg.header.stamp = stamps[i]
-            pubs[name].publish(msg)
-        pubs["left/image"].publish(cv.numpy_to_image(frames[i][0], "mono8", stamps[i], "cam"))
-        pubs["right/image"].publish(cv.numpy_to_image(frames[i][1], "mono8", stamps[i], "cam"))
+        rig(frames[i][0], frames[i][1], stamps[i])
 
     send(0)                                         # initialise on the first frame
     assert wait_for(lambda: len(states) >= 1, 30), node.output()
