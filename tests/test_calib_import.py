@@ -162,6 +162,10 @@ def test_kitti_calibration_with_and_without_prefixes(tmp_path):
                  + "Tr: " + " ".join(["1", "0", "0", "0", "0", "1", "0", "0", "0", "0", "1", "0"]) + "\n")
     cam2 = load_kitti_calibration(str(p), (1226, 370))
     assert np.allclose(cam2.right.P, cam.right.P)
+    assert cam.doffs == 0.0     # calib.txt: the same cx for both cameras
+    cam3 = load_kitti_calibration(str(p), (1226, 370), doffs=-0.2)
+    assert cam3.doffs == pytest.approx(-0.2) and cam3.is_rectified
+    assert cam3.baseline == pytest.approx(cam.baseline) and cam3.cx == cam.cx
     p.write_text("P0: 1 2 3\n")
     with pytest.raises(CalibrationError, match="P0"):
         load_kitti_calibration(str(p), (10, 10))
@@ -280,14 +284,15 @@ def test_import_kitti_bag(tmp_path):
     from mdr_slam.camera import StereoCamera
     d = shared_data("kitti06_clip")
     out = str(tmp_path / "kitti.bag")
-    r = subprocess.run(["mdr", "import", "kitti", d, out, "--max-frames", "20"],
-                       capture_output=True, text=True, timeout=120)
+    r = subprocess.run(["mdr", "import", "kitti", d, out, "--max-frames", "20",
+                        "--doffs", "-0.2"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     frames = list(read_stereo_frames(out))
     assert len(frames) == 20
     assert frames[0].stamp == pytest.approx(1.0) and frames[1].stamp == pytest.approx(1.1044989)
     cam = StereoCamera(frames[0].left_info, frames[0].right_info)
     assert cam.baseline == pytest.approx(0.5372, abs=1e-4) and cam.is_rectified
+    assert cam.doffs == pytest.approx(-0.2)      # the right camera_info carries the correction
     assert all(f.T_map_cam_gt is not None for f in frames)
     assert np.allclose(frames[0].T_map_cam_gt, np.eye(4), atol=1e-6)
     r = subprocess.run(["mdr", "import", "kitti", str(tmp_path), str(tmp_path / "x.bag")],

@@ -81,6 +81,15 @@ def test_camera_info_roundtrip():
     assert (back.width, back.height, back.frame_id) == (752, 480, "cam0")
 
 
+def test_camera_info_pair_keeps_the_principal_point_difference():
+    from mdr_slam.camera import StereoCamera
+    cam = StereoCamera.from_rectified(752, 480, 458.0, 458.0, 367.0, 248.0, 0.11).with_doffs(-0.2)
+    back = StereoCamera(*[cv.camera_info_to_model(_serialize_roundtrip(cv.model_to_camera_info(m)))
+                          for m in (cam.left, cam.right)])
+    assert back.doffs == pytest.approx(-0.2) and back.is_rectified
+    assert back.baseline == pytest.approx(0.11)
+
+
 def test_camera_info_of_zeros_is_rejected():
     from sensor_msgs.msg import CameraInfo
     with pytest.raises(cv.ConversionError, match="uncalibrated"):

@@ -467,3 +467,22 @@ def test_error_correlation_tells_noise_from_a_surface_bias():
         assert n > 1000 and abs(c) < 0.1 and rms2 < 0.8 * rms1
     for _, _, n, c, rms1, rms2 in bias:
         assert n > 1000 and c > 0.9 and rms2 > 0.95 * rms1
+
+
+def test_depth_honours_the_principal_point_difference():
+    """A right camera whose cx differs from the left's (ROS CameraInfo allows it; KITTI's calib
+    is 0.2 px off): a measured disparity d means Z = f*B / (d - doffs) (image_geometry getZ)."""
+    base = tiny_camera()
+    cam = base.with_doffs(0.5)
+    assert cam.doffs == pytest.approx(0.5) and base.doffs == 0.0
+    assert cam.is_rectified and cam.right.K[0, 2] == pytest.approx(base.cx - 0.5)
+    fB = cam.fx * cam.baseline
+    disp = np.full((48, 64), 15.5, np.float32)
+    disp[0, 0] = -10.0        # libelas invalid stays invalid
+    disp[0, 1] = 0.4          # positive, but at or behind infinity once corrected
+    Z, var = measurement_from_disparity(disp, cam, sigma_d=0.5, min_depth=0.2, max_depth=100.0)
+    assert np.isclose(Z[5, 5], fB / 15.0)
+    assert np.all(np.isnan(Z[0, :2])) and np.all(np.isnan(var[0, :2]))
+    Z2 = cam.disparity_to_depth(disp)
+    assert np.isclose(Z2[5, 5], fB / 15.0) and np.all(np.isnan(Z2[0, :2]))
+    assert np.isclose(base.disparity_to_depth(disp)[5, 5], fB / 15.5)

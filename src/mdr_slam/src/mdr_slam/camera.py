@@ -106,6 +106,31 @@ class StereoCamera:
         return float(-(self.right.P[0, 3] - self.left.P[0, 3]) / self.right.P[0, 0])
 
     @property
+    def doffs(self) -> float:
+        """Principal point difference ``cx_left - cx_right`` of the rectified pair (px): a measured
+        disparity ``d = u_left - u_right`` means depth ``Z = f*B / (d - doffs)`` (image_geometry's
+        StereoCameraModel::getZ; Middlebury's ``doffs``). 0 when the rectification gave both
+        cameras the same principal point (OpenCV's CALIB_ZERO_DISPARITY, KITTI's calib.txt); a
+        calibration that is off by a fraction of a pixel is corrected by the right P's cx."""
+        return float(self.left.P[0, 2] - self.right.P[0, 2])
+
+    def with_doffs(self, doffs: float) -> "StereoCamera":
+        """A copy whose right principal point gives ``doffs`` (P, and K for rectified images).
+        Raw images keep this camera's rectification maps: the same rectified pixels, read with
+        the corrected principal point (in a calibration file of raw images P also defines the
+        rectification, so there the fix is a new stereo calibration)."""
+        import copy
+        maps = None if self.is_rectified else self.rectify_maps()
+        left, right = copy.deepcopy(self.left), copy.deepcopy(self.right)
+        cx_r = float(left.P[0, 2]) - float(doffs)
+        if self.right.is_rectified:
+            right.K[0, 2] = cx_r
+        right.P[0, 2] = cx_r
+        cam = StereoCamera(left, right)
+        cam._maps = maps
+        return cam
+
+    @property
     def size(self) -> Tuple[int, int]:
         """(width, height)."""
         return self.left.width, self.left.height
@@ -148,11 +173,12 @@ class StereoCamera:
 
     # --- geometry in the rectified left camera
     def disparity_to_depth(self, disparity: np.ndarray) -> np.ndarray:
-        """Z = f*B/d; non-positive disparities give NaN."""
+        """Z = f*B/(d - doffs); non-positive disparities (no match) give NaN."""
         d = np.asarray(disparity, dtype=np.float32)
+        dc = d - np.float32(self.doffs)
         with np.errstate(divide="ignore", invalid="ignore"):
-            Z = np.float32(self.fx * self.baseline) / d
-        Z[~(d > 0)] = np.nan
+            Z = np.float32(self.fx * self.baseline) / dc
+        Z[~((d > 0) & (dc > 0))] = np.nan
         return Z
 
     def backproject(self, u: np.ndarray, v: np.ndarray, Z: np.ndarray) -> np.ndarray:
@@ -171,11 +197,14 @@ class StereoCamera:
 
     @classmethod
     def from_rectified(cls, width: int, height: int, fx: float, fy: float, cx: float, cy: float,
-                       baseline: float, frame_id: str = "") -> "StereoCamera":
-        """An ideal rectified pair (simulator, KITTI): same K for both, R = I, no distortion."""
+                       baseline: float, frame_id: str = "", doffs: float = 0.0) -> "StereoCamera":
+        """An ideal rectified pair (simulator, KITTI): same K for both (the right cx is
+        ``cx - doffs``), R = I, no distortion."""
         K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
         Pl = np.hstack([K, np.zeros((3, 1))])
-        Pr = Pl.copy()
+        Kr = K.copy()
+        Kr[0, 2] = cx - doffs
+        Pr = np.hstack([Kr, np.zeros((3, 1))])
         Pr[0, 3] = -fx * baseline
         return cls(CameraModel(width, height, K, np.zeros(5), np.eye(3), Pl, frame_id=frame_id),
-                   CameraModel(width, height, K, np.zeros(5), np.eye(3), Pr, frame_id=frame_id))
+                   CameraModel(width, height, Kr, np.zeros(5), np.eye(3), Pr, frame_id=frame_id))

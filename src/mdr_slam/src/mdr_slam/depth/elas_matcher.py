@@ -147,7 +147,7 @@ def disparity_sigma(grey: np.ndarray, sigma_d: float = 0.5, texture_k: float = 0
 def measurement_from_disparity(disp: np.ndarray, camera: StereoCamera,
                                sigma_d: Union[float, np.ndarray] = 0.5, min_depth: float = 0.2,
                                max_depth: float = 10.0) -> Tuple[np.ndarray, np.ndarray]:
-    """(Z, var) float32 HxW from a disparity: Z = f*B/d, var = (Z^2 * sigma_d / (f*B))^2 (m^2).
+    """(Z, var) float32 HxW from a disparity: Z = f*B/(d - doffs), var = (Z^2 * sigma_d / (f*B))^2 (m^2).
 
     ``sigma_d`` (px) is a constant or an HxW map (:func:`disparity_sigma`). Invalid (d <= 0: no
     match, occluded or left-right inconsistent in libelas) and out-of-range pixels are NaN in
@@ -155,9 +155,10 @@ def measurement_from_disparity(disp: np.ndarray, camera: StereoCamera,
     """
     d = np.asarray(disp, dtype=np.float32)
     fB = np.float32(camera.fx * camera.baseline)
+    doffs = np.float32(getattr(camera, "doffs", 0.0))   # cx_left - cx_right (StereoCamera.doffs)
     with np.errstate(divide="ignore", invalid="ignore"):
-        Z = fB / d
-        ok = (d > 0) & np.isfinite(Z) & (Z >= min_depth) & (Z <= max_depth)
+        Z = fB / (d - doffs) if doffs else fB / d
+        ok = (d > 0) & (Z > 0) & np.isfinite(Z) & (Z >= min_depth) & (Z <= max_depth)
         Z = np.where(ok, Z, np.float32(np.nan)).astype(np.float32)
         sZ = Z * Z * np.asarray(sigma_d, dtype=np.float32) / fB
     return Z, (sZ * sZ).astype(np.float32)

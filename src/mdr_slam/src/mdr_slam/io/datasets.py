@@ -185,11 +185,13 @@ def load_euroc(path: str, ground_truth: Optional[str] = None,
 
 # ------------------------------------------------------------------------------------ KITTI
 def load_kitti(path: str, poses: Optional[str] = None, rate_hz: float = 10.0,
-               on_skip: Optional[Callable[[str], None]] = None) -> StereoDataset:
+               on_skip: Optional[Callable[[str], None]] = None,
+               doffs: Optional[float] = None) -> StereoDataset:
     """KITTI odometry sequence: ``image_0``/``image_1`` (or ``image_l``/``image_r``), ``calib.txt``,
     ``times.txt`` (else ``rate_hz``) and ``poses.txt`` (cam0-to-world 3x4 rows) when present.
 
-    ``poses`` may point at the ground truth elsewhere (``dataset/poses/06.txt``).
+    ``poses`` may point at the ground truth elsewhere (``dataset/poses/06.txt``). ``doffs``
+    corrects calib.txt's principal point difference (:func:`mdr_slam.calib.load_kitti_calibration`).
     """
     from ..calib import load_kitti_calibration
     skip = on_skip or (lambda msg: None)
@@ -215,7 +217,8 @@ def load_kitti(path: str, poses: Optional[str] = None, rate_hz: float = 10.0,
     first = cv2.imread(pairs[0][1], cv2.IMREAD_UNCHANGED)
     if first is None:
         raise DatasetError("cannot read image %s" % pairs[0][1])
-    camera = load_kitti_calibration(os.path.join(path, "calib.txt"), (first.shape[1], first.shape[0]))
+    camera = load_kitti_calibration(os.path.join(path, "calib.txt"), (first.shape[1], first.shape[0]),
+                                    doffs=doffs)
 
     times_path = os.path.join(path, "times.txt")
     n_files = len(lfiles)

@@ -209,8 +209,9 @@ class DepthNode:
             self.depth = StereoDepth(cam, self.depth_params)
             self.camera_key = key
             import rospy
-            rospy.loginfo("depth_node: camera %dx%d fx=%.1f B=%.4f m%s", cam.size[0], cam.size[1],
-                          cam.fx, cam.baseline, "" if cam.is_rectified else " (rectifying)")
+            rospy.loginfo("depth_node: camera %dx%d fx=%.1f B=%.4f m%s%s", cam.size[0], cam.size[1],
+                          cam.fx, cam.baseline, "" if cam.is_rectified else " (rectifying)",
+                          " doffs=%+.3f px (right cx differs)" % cam.doffs if cam.doffs else "")
 
     # ------------------------------------------------------------------ callbacks
     def on_images(self, left, right, linfo=None, rinfo=None):

@@ -353,6 +353,10 @@ class OrbNode:
                     self.system.shutdown()
                     self.system = None
             self.camera, self.info_key = cam, key
+            if cam.doffs:
+                import rospy
+                rospy.loginfo("pose_node: the right principal point is %+.3f px from the left's "
+                              "(doffs): disparities are measured from it", -cam.doffs)
         return self.camera
 
     def _to_mono8(self, msg):

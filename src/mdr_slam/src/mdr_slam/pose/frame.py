@@ -37,8 +37,13 @@ _L = 5   # SAD search half range (+-5 px)
 
 def compute_stereo_matches(left: np.ndarray, right: np.ndarray, uv_l, oct_l, desc_l, uv_r, oct_r,
                            desc_r, scale: np.ndarray, fx: float, baseline: float,
-                           min_depth: Optional[float] = None):
-    """Right u coordinate (N,) (-1 when unmatched) and depth (N,) (-1 when unmatched) per left kp."""
+                           min_depth: Optional[float] = None, doffs: float = 0.0):
+    """Right u coordinate (N,) (-1 when unmatched) and depth (N,) (-1 when unmatched) per left kp.
+
+    ``doffs`` (px, :attr:`StereoCamera.doffs`): the principal point difference; the disparity
+    is ``u_left - u_right - doffs``, and the right coordinate returned is ``u_left - disparity``
+    (the right camera's as if it had the left cx: what the optimizer's ``u - bf/z`` predicts).
+    """
     n = len(uv_l)
     ur = -np.ones(n, dtype=np.float32)
     depth = -np.ones(n, dtype=np.float32)
@@ -72,7 +77,7 @@ def compute_stereo_matches(left: np.ndarray, right: np.ndarray, uv_l, oct_l, des
         prs.append(b[keep])
     pl_ = np.concatenate(pls) if pls else np.zeros(0, np.int64)
     pr_ = np.concatenate(prs) if prs else np.zeros(0, np.int64)
-    du = uv_l[pl_, 0] - uv_r[pr_, 0]
+    du = uv_l[pl_, 0] - uv_r[pr_, 0] - doffs
     ok = (du >= 0) & (du <= max_d)
     pl_, pr_ = pl_[ok], pr_[ok]
     if len(pl_) == 0:
@@ -130,7 +135,7 @@ def compute_stereo_matches(left: np.ndarray, right: np.ndarray, uv_l, oct_l, des
     good = interior & np.isfinite(delta) & (np.abs(delta) < 1.0)
     best_sad = sad[m, k]
     u_right = uR0 + shifts[k] + np.where(good, delta, 0.0)
-    disp = uL - u_right   # the SAD patch is centred on round(uL), so measure from there
+    disp = uL - u_right - doffs   # the SAD patch is centred on round(uL): measured from there
     good &= (disp >= 0) & (disp < max_d)
     disp = np.where(disp <= 0, 0.01, disp)
     il, disp, best_sad = il[good], disp[good], best_sad[good]
@@ -161,6 +166,7 @@ class Frame:
         self.fx, self.fy, self.cx, self.cy = camera.fx, camera.fy, camera.cx, camera.cy
         self.baseline = camera.baseline
         self.bf = self.fx * self.baseline
+        self.doffs = float(getattr(camera, "doffs", 0.0))   # cx_left - cx_right (px)
         self.width, self.height = camera.size
         self.th_depth = th_depth_factor * self.baseline   # "close" points (ORB-SLAM2 mThDepth)
         self.scale = extractor.scale
@@ -178,7 +184,7 @@ class Frame:
             uv_r, oct_r, _, desc_r = extractor(right)
         self.ur, self.depth = compute_stereo_matches(
             left, right, self.uv, self.octave, self.desc, uv_r, oct_r, desc_r, self.scale,
-            self.fx, self.baseline)
+            self.fx, self.baseline, doffs=self.doffs)
         self.N = len(self.uv)
         # the images, for the optical-flow fallback (only the last frame is kept by Tracking)
         self.image, self.right_image = left, right

@@ -13,7 +13,9 @@ when you have it). Empty: the project's own vocabulary (``mdr vocab``, src/mdr_s
 orb_vocab.npz) is written once in DBoW2's text format (:func:`export_dbow2_text`, ~2 MB,
 cached next to it or under ~/.cache/mdr_slam) and loaded in milliseconds; nothing is downloaded.
 ORB-SLAM3 reads its settings from a YAML written from the camera model (rectified pinhole, no
-distortion: the node rectifies first) and the tracker's ORB parameters of pose.yaml.
+distortion: the node rectifies first) and the tracker's ORB parameters of pose.yaml; a right
+camera whose principal point differs from the left's (``StereoCamera.doffs``) has its image
+shifted by the difference, since those settings hold one principal point.
 
 What this backend does not give (pyorbslam3 0.1 exposes no keyframes): keyframe events and their
 corrections (/mdr/keyframes stays empty; the depth node then picks its own keyframes and the map
@@ -176,6 +178,14 @@ class ORBSLAM3System:
             import cv2
             left_rect = cv2.cvtColor(left_rect, cv2.COLOR_BGR2GRAY)
             right_rect = cv2.cvtColor(right_rect, cv2.COLOR_BGR2GRAY)
+        doffs = float(getattr(self.camera, "doffs", 0.0))
+        if abs(doffs) > 1e-3:
+            # ORB-SLAM3's settings have one principal point for both cameras: the right image is
+            # moved by the difference (StereoCamera.doffs) so its disparities mean f*B/Z
+            import cv2
+            h, w = right_rect.shape[:2]
+            right_rect = cv2.warpAffine(right_rect, np.float32([[1, 0, doffs], [0, 1, 0]]), (w, h),
+                                        flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
         return _Pair(stamp, np.ascontiguousarray(left_rect), np.ascontiguousarray(right_rect))
 
     def track(self, stamp: float, left_rect: Optional[np.ndarray] = None,

@@ -60,7 +60,9 @@ class BoxRoom:
         w, h = camera.size
         args = (camera.fx, camera.fy, camera.cx, camera.cy, w, h)
         left = self.render(T_wc, *args)
-        right = self.render(T_wc @ make_T(np.eye(3), [camera.baseline, 0, 0]), *args)
+        # the right camera's own principal point (StereoCamera.doffs = cx_left - cx_right)
+        args_r = (camera.fx, camera.fy, camera.cx - getattr(camera, "doffs", 0.0), camera.cy, w, h)
+        right = self.render(T_wc @ make_T(np.eye(3), [camera.baseline, 0, 0]), *args_r)
         return left, right
 
 

@@ -389,12 +389,12 @@ class Tracking:
         if right is not None:
             q0 = p1.astype(np.float32)
             q1 = q0.copy()
-            q1[:, 0] -= d_pred.astype(np.float32)
+            q1[:, 0] -= (d_pred + frame.doffs).astype(np.float32)
             q1, okr = self._flow(frame.image, right, q0, q1)
-            disp = q0[:, 0] - q1[:, 0]
+            disp = q0[:, 0] - q1[:, 0] - np.float32(frame.doffs)   # StereoCamera.doffs
             okr &= ((np.abs(q1[:, 1] - q0[:, 1]) <= 1.0) & (disp > 0.5) & (disp < frame.fx) &
                     (np.abs(disp - d_pred) <= np.maximum(2.0, 0.25 * d_pred)))
-            ur[okr] = q1[okr, 0]
+            ur[okr] = q0[okr, 0] - disp[okr]
             depth[okr] = frame.bf / disp[okr]
         new = frame.append_keypoints(p1, octv[k], last.angle[sel], desc, ur, depth)
         frame.mp_ids[new] = ids
