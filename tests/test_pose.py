@@ -1112,3 +1112,21 @@ def test_kitti_clip_tracked_with_its_measured_principal_point_difference():
     # measured 0.212 and 0.062 m (AMD EPYC)
     assert ates[0] < 0.3
     assert ates[1] < 0.09 and ates[1] < 0.6 * ates[0]
+
+
+def test_check_stereo_offset_script_reads_kittis_offset(root_dir):
+    import re
+    import subprocess
+    import sys
+    from conftest import shared_data
+    d = shared_data("kitti06_clip")
+    r = subprocess.run([sys.executable, "scripts/check_stereo_offset.py", "--kitti", d,
+                        "--preset", "kitti"], cwd=root_dir, capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr
+    m = re.search(r"ground truth\s+offset ([-+.\d]+) \+- [.\d]+ px with scale ([.\d]+) "
+                  r"\(([-+.\d]+) \+- [.\d]+ px at scale 1\)", r.stdout)
+    assert m, r.stdout
+    e, a, e1 = (float(x) for x in m.groups())
+    assert -0.3 < e < -0.1 and -0.3 < e1 < -0.1 and abs(a - 1.0) < 0.01   # measured -0.205, -0.160
+    assert re.search(r"-> doffs [-+.\d]+ px: right cx = 60[12]\.\d+ \(left cx 601.8873\)", r.stdout)
