@@ -41,6 +41,8 @@ DEFAULT_PARAMS = {
     "min_frames": 0,
     "th_ref_ratio": 0.75,
     "min_close_points": 100,
+    "close_tracked_ratio": 0.45, # also a keyframe (when LocalMapping is idle) when fewer than this
+                                 # share of the close stereo points is tracked (0: off, ORB-SLAM2)
     "max_local_keyframes": 60,
     "reset_if_lost_below_kfs": 3,
     "local_ba": True,

@@ -600,11 +600,15 @@ class Tracking:
         # ORB-SLAM2's 100/70 assume 1000+ features; on blank walls every new close point counts
         min_new = max(10, 0.3 * np.count_nonzero(close)) if low else 70
         need_close = n_tracked_close < 100 and n_non_tracked_close > min(70, min_new)
+        # the map covers too little of what the frame sees nearby (not in ORB-SLAM2): a keyframe
+        # when LocalMapping is idle (c1b), never interrupting its BA as need_close does
+        sparse = (n_tracked_close < self.p["close_tracked_ratio"] * np.count_nonzero(close) and
+                  n_non_tracked_close > min(70, min_new))
         th_ref = 0.4 if n_kfs < 2 else self.p["th_ref_ratio"]
         c1a = frame.id >= self.last_kf_frame_id + max_frames
         c1b = frame.id >= self.last_kf_frame_id + min_frames and idle
         c1c = self.n_matches_inliers < n_ref * 0.25 or need_close
-        c2 = (self.n_matches_inliers < n_ref * th_ref or need_close) and \
+        c2 = (self.n_matches_inliers < n_ref * th_ref or need_close or sparse) and \
             self.n_matches_inliers > (10 if low else 15)
         if (c1a or c1b or c1c) and c2:
             if idle:
