@@ -17,10 +17,10 @@ or the reference's own scale). The two are told apart only over a wide range of 
 given too: a trustworthy offset is one on which both agree.
 
 The poses must not come from the same stereo: a tracker's own poses were fitted to the biased
-disparities and absorb much of ``e`` (KITTI 06: -0.08 px from the tracker's poses against -0.16 to -0.21 px
-from the ground truth; on simulated sequences with a known injected offset, estimates from the
-tracker's own poses, even after a left-image-only bundle adjustment, scattered by +-0.2 px and
-sometimes had the wrong sign). So this is a check with ground truth (``scripts/
+disparities and absorb much of ``e`` (KITTI 06: -0.08 px from the tracker's poses against -0.16
+to -0.21 px from the ground truth; on simulated sequences with a known injected offset,
+estimates from the tracker's own poses, even after a left-image-only bundle adjustment,
+scattered by +-0.2 px and sometimes had the wrong sign). So this is a check with ground truth (``scripts/
 check_stereo_offset.py``), not a self-calibration: its result goes into the calibration as the
 right camera's principal point (``StereoCamera.doffs``), which every node honours.
 """
