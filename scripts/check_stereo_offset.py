@@ -67,7 +67,7 @@ def main(argv=None) -> int:
         n += 1
     system.shutdown()
     kfs = system.map.good_keyframes()
-    first = min((k for k in kfs), key=lambda k: k.id, default=None)
+    first = min(kfs, key=lambda k: k.id, default=None)
     if first is None or round(first.stamp, 6) not in gt:
         print("no ground truth at the first keyframe: nothing to check against", file=sys.stderr)
         return 1
