@@ -78,7 +78,7 @@ DEFAULT_PARAMS = {
     "loop_rot_significance": 5.0,   # ... is accepted only when it turns the map by this many sigmas (0: off)
     "reloc_candidates": 10,
     "lost_coast_s": 0.5,         # LOST: motion-model tracking from the last tracked frame goes on this long
-    "motion_prior_acc": 0.0,     # pose-only optimization pulled toward the constant-velocity prediction:
+    "motion_prior_acc": 4.0,     # pose-only optimization pulled toward the constant-velocity prediction:
     "motion_prior_ang_acc": 120.0, # sigmas acc * dt^2 (m/s^2) and ang_acc * dt^2 (deg/s^2) (0: off)
     "reloc_max_ms": 60.0,
     "yield_max_ms": 60.0,        # threads: mapping waits at most this long for a frame's tracking (0: off)
