@@ -37,7 +37,7 @@ SEQUENCES = {
     "corridor_corner": ("corridor", "corner", 15.0, 3, False),
     "garage_loop": ("garage", "loop", 30.0, 4, True),
 }
-DEFAULT = "office_loop,office_loop_rotation,office_pure_rotation,corridor_corner"
+DEFAULT = "office_loop,office_loop_rotation,office_pure_rotation,corridor_corner,garage_loop"
 TRACKED = ("OK", "RELOCALIZED")
 
 

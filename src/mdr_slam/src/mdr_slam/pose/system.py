@@ -76,10 +76,16 @@ DEFAULT_PARAMS = {
     "loop_proximity_weak_consistency": 2,  # ... with this many previous weak verifications
     "loop_max_rot_sigma_deg": 1.0,  # a BoW loop whose inliers leave its rotation more uncertain than this ...
     "loop_rot_significance": 5.0,   # ... is accepted only when it turns the map by this many sigmas (0: off)
+    "loop_rot_sigma_cap_deg": 4.0,  # ... and never when that sigma exceeds this (0: no cap)
     "reloc_candidates": 10,
     "lost_coast_s": 0.5,         # LOST: motion-model tracking from the last tracked frame goes on this long
     "motion_prior_acc": 4.0,     # pose-only optimization pulled toward the constant-velocity prediction:
     "motion_prior_ang_acc": 120.0, # sigmas acc * dt^2 (m/s^2) and ang_acc * dt^2 (deg/s^2) (0: off)
+    "shading_max_spread": 0.3,   # inliers spanning less of the image width: the last frame's shading joins
+    "shading_max_close": 0.2,    # ... and at most this share of them is within th_depth (a far view)
+    "shading_cell": 32,          # ... one point per cell of this many px (Tracking.refine_on_one_patch)
+    "shading_min_eig": 6e-5,     # ... where the structure tensor's smaller eigenvalue exceeds this
+    "shading_weight": 4.0,       # ... their information (1/px^2) in the pose-only optimization (0 spread: off)
     "reloc_max_ms": 60.0,
     "yield_max_ms": 60.0,        # threads: mapping waits at most this long for a frame's tracking (0: off)
     "backpressure_inliers": 80,  # threads: wait for LocalMapping when tracking gets this weak

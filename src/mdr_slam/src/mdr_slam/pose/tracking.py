@@ -106,7 +106,9 @@ class Tracking:
                     ok = self.track_local_map_wide(frame) and self.track_local_map(frame)
                 if not ok:
                     ok = self.track_last_frame_pnp(frame) and self.track_local_map(frame)
-            frame.prior = None   # relocalization and the keyframe go without it
+            prior, frame.prior = frame.prior, None   # relocalization and the keyframe go without it
+            if ok:
+                self.refine_on_one_patch(frame, prior)
             if self.state == LOST and not ok:
                 ok = self.relocalization(frame)
                 relocalized = ok
@@ -437,6 +439,125 @@ class Tracking:
             return False
         Optimizer.pose_optimization(frame, self.map)
         return self._discard_outliers(frame) >= 10
+
+    def shading_points(self, frame: Frame):
+        """Points of the last frame's faint texture spread over the whole view, for
+        :meth:`refine_on_one_patch`: per ``shading_cell`` grid cell the pixel with the largest
+        minimum eigenvalue of the half-resolution structure tensor (cv2.cornerMinEigenVal: the
+        soft shading of a blank wall, where FAST finds nothing), kept above ``shading_min_eig``;
+        their depth from a Lucas-Kanade flow into the right image, started at the disparity of
+        the frame's median stereo keypoint (kept on the row, consistent both ways). Returns
+        (world points (M, 3), their left-image positions (M, 2)) or None."""
+        import cv2
+        last = self.last_frame
+        img, right = last.image, last.right_image
+        if img is None or right is None:
+            return None
+        c = int(self.p["shading_cell"])
+        half = cv2.pyrDown(img)
+        eig = cv2.cornerMinEigenVal(half, blockSize=7, ksize=3)
+        ch = max(2, c // 2)
+        h, w = eig.shape
+        gh, gw = h // ch, w // ch
+        cells = eig[:gh * ch, :gw * ch].reshape(gh, ch, gw, ch).transpose(0, 2, 1, 3).reshape(
+            gh, gw, ch * ch)
+        k = np.argmax(cells, axis=2)
+        best = np.take_along_axis(cells, k[..., None], axis=2)[..., 0]
+        gy, gx = np.mgrid[0:gh, 0:gw]
+        v = gy * ch + k // ch
+        u = gx * ch + k % ch
+        ok = best > float(self.p["shading_min_eig"])
+        p0 = (np.column_stack([u[ok], v[ok]]).astype(np.float32) * 2.0 + 0.5)
+        edge = 24.0
+        p0 = p0[(p0[:, 0] >= edge) & (p0[:, 0] < last.width - edge) &
+                (p0[:, 1] >= edge) & (p0[:, 1] < last.height - edge)]
+        st = last.depth > 0
+        if len(p0) < 10 or not np.any(st):
+            return None
+        d0 = float(last.bf / np.median(last.depth[st]))
+        q1 = p0.copy()
+        q1[:, 0] -= np.float32(d0 + last.doffs)
+        q1, okr = self._flow(img, right, p0, q1)
+        disp = p0[:, 0] - q1[:, 0] - np.float32(last.doffs)
+        okr &= (np.abs(q1[:, 1] - p0[:, 1]) <= 1.0) & (disp > 0.5) & (disp < last.fx)
+        p0, disp = p0[okr], disp[okr].astype(np.float64)
+        if len(p0) < 10:
+            return None
+        z = last.bf / disp
+        Xc = np.column_stack([(p0[:, 0] - last.cx) * z / last.fx,
+                              (p0[:, 1] - last.cy) * z / last.fy, z])
+        T_wc = inv_T(last.T_cw)
+        return Xc @ T_wc[:3, :3].T + T_wc[:3, 3], p0
+
+    def refine_on_one_patch(self, frame: Frame, prior=None) -> int:
+        """Features on one small patch (not in ORB-SLAM2): when the frame's inliers span less
+        than ``shading_max_spread`` of the image width (a blank wall with one poster: simulated
+        garage, all 1500 ORB features on a 120 px patch 5-6 m away), a yaw and a sideways step
+        move them alike and the pose drifts along that direction by tenths of a degree per
+        frame. The wall's faint shading, everywhere else in the view, tells them apart (a yaw
+        moves the image edges more than the centre, a step does not): :meth:`shading_points`
+        of the last frame are followed into this one by Lucas-Kanade and join the pose-only
+        optimization as monocular observations (points placed by the last frame's pose and
+        their stereo depth), with the map points as before. Returns the shading points used."""
+        if float(self.p["shading_max_spread"]) <= 0:
+            return 0
+        last = self.last_frame
+        if last is None or last.T_cw is None or frame.T_cw is None:
+            return 0
+        inl = np.nonzero((frame.mp_ids >= 0) & ~frame.outlier)[0]
+        if len(inl) < 10:
+            return 0
+        u = frame.uv[inl, 0]
+        if np.percentile(u, 95) - np.percentile(u, 5) >= float(
+                self.p["shading_max_spread"]) * frame.width:
+            return 0
+        close = (frame.depth[inl] > 0) & (frame.depth[inl] < frame.th_depth)
+        if np.count_nonzero(close) > float(self.p["shading_max_close"]) * len(inl):
+            return 0   # near points: stereo depth and parallax already separate the two
+        got = self.shading_points(frame)
+        if got is None:
+            return 0
+        Pw, p0 = got
+        T = frame.T_cw
+        Pc = Pw @ T[:3, :3].T + T[:3, 3]
+        front = Pc[:, 2] > 0.1
+        Pw, p0, Pc = Pw[front], p0[front], Pc[front]
+        p1 = np.column_stack([frame.fx * Pc[:, 0] / Pc[:, 2] + frame.cx,
+                              frame.fy * Pc[:, 1] / Pc[:, 2] + frame.cy]).astype(np.float32)
+        p1, good = self._flow(last.image, frame.image, p0, p1)
+        good &= (p1[:, 0] >= 0) & (p1[:, 0] < frame.width) & (p1[:, 1] >= 0) & \
+            (p1[:, 1] < frame.height)
+        Pw, p1 = Pw[good], p1[good]
+        if len(Pw) < 10:
+            return 0
+        idx = np.nonzero(frame.mp_ids >= 0)[0]
+        n, m = len(idx), len(Pw)
+
+        class _View:   # the frame's matched keypoints plus the shading points, for the optimizer
+            pass
+        f = _View()
+        f.fx, f.fy, f.cx, f.cy, f.bf = frame.fx, frame.fy, frame.cx, frame.cy, frame.bf
+        f.uv = np.concatenate([frame.uv[idx], p1.astype(frame.uv.dtype)])
+        f.ur = np.concatenate([frame.ur[idx], -np.ones(m, frame.ur.dtype)])
+        # the shading points get a level of their own, weighted by shading_weight (1 px sigma at 1)
+        lv = len(frame.inv_level_sigma2)
+        f.octave = np.concatenate([frame.octave[idx], np.full(m, lv, frame.octave.dtype)])
+        f.inv_level_sigma2 = np.append(frame.inv_level_sigma2, float(self.p["shading_weight"]))
+        f.mp_ids = np.arange(n + m)
+        f.outlier = np.zeros(n + m, bool)
+        f.T_cw = frame.T_cw.copy()
+        f.prior = prior
+
+        class _Points:
+            pass
+        pts = _Points()
+        pts.mp_pos = np.concatenate([self.map.mp_pos[frame.mp_ids[idx]], Pw])
+        pts.mp_bad = np.zeros(n + m, bool)
+        if Optimizer.pose_optimization(f, pts) < 10:
+            return 0
+        frame.set_pose(f.T_cw)
+        frame.outlier[idx] = f.outlier[:n]
+        return m
 
     def track_reference_keyframe(self, frame: Frame) -> bool:
         frame.mp_ids[:] = -1
