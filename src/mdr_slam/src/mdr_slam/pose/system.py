@@ -76,6 +76,7 @@ DEFAULT_PARAMS = {
     "loop_proximity_weak_consistency": 2,  # ... with this many previous weak verifications
     "loop_max_rot_sigma_deg": 1.0,  # a BoW loop whose inliers leave its rotation more uncertain than this ...
     "loop_rot_significance": 5.0,   # ... is accepted only when it turns the map by this many sigmas (0: off)
+    "loop_reprojection_refine": True,  # BoW loop correction refined by kf's pixels (ORB-SLAM2 OptimizeSim3)
     "loop_rot_sigma_cap_deg": 4.0,  # ... and never when that sigma exceeds this (0: no cap)
     "reloc_candidates": 10,
     "lost_coast_s": 0.5,         # LOST: motion-model tracking from the last tracked frame goes on this long
