@@ -552,23 +552,12 @@ class LoopClosing:
         exceeds th_depth (near ones fit well in 3-D; refining them too made the sample's loop
         worse, 0.42 -> 1.13 % of the path). Returns the refined S, or S when too few inliers
         remain."""
-        class _View:
-            pass
-        f = _View()
-        f.fx, f.fy, f.cx, f.cy, f.bf = kf.fx, kf.fy, kf.cx, kf.cy, kf.bf
-        f.uv, f.ur, f.octave = kf.uv[kp_idx], kf.ur[kp_idx], kf.octave[kp_idx]
-        f.inv_level_sigma2 = kf.inv_level_sigma2
-        n = len(kp_idx)
-        f.mp_ids = np.arange(n)
-        f.outlier = np.zeros(n, bool)
-        f.T_cw = kf.T_cw @ inv_T(S)
-        f.prior = None
-        pts = _View()
-        pts.mp_pos = np.asarray(Pw, dtype=float)
-        pts.mp_bad = np.zeros(n, bool)
-        if Optimizer.pose_optimization(f, pts) < self.min_inliers:
+        T_cw, _, n_inl = Optimizer.pose_from_points(
+            kf, kf.T_cw @ inv_T(S), kf.uv[kp_idx], kf.ur[kp_idx], kf.octave[kp_idx],
+            kf.inv_level_sigma2, Pw)
+        if n_inl < self.min_inliers:
             return S
-        return normalize_pose(inv_T(f.T_cw) @ kf.T_cw)
+        return normalize_pose(inv_T(T_cw) @ kf.T_cw)
 
     def correct_loop(self, kf, cand, S, cur_ids, loop_ids, new_kp, new_ids,
                      n_match: Optional[int] = None) -> None:

@@ -511,6 +511,29 @@ class Optimizer:
         frame.outlier[idx] = ~inlier
         return int(np.count_nonzero(inlier))
 
+    @staticmethod
+    def pose_from_points(cam, T_cw, uv, ur, octave, inv_level_sigma2, Pw, bad=None, prior=None):
+        """:meth:`pose_optimization` on explicit correspondences (keypoints ``uv``, ``ur``,
+        ``octave`` of a frame or keyframe ``cam`` giving fx, fy, cx, cy, bf; world points ``Pw``;
+        ``bad`` points are left out), started at ``T_cw``: (refined T_cw, outlier mask, inliers).
+        For observations that are not the frame's own map-point matches (a loop's other side,
+        optical-flow tracks)."""
+        class _View:
+            pass
+        n = len(Pw)
+        f = _View()
+        f.fx, f.fy, f.cx, f.cy, f.bf = cam.fx, cam.fy, cam.cx, cam.cy, cam.bf
+        f.uv, f.ur, f.octave, f.inv_level_sigma2 = uv, ur, octave, inv_level_sigma2
+        f.mp_ids = np.arange(n)
+        f.outlier = np.zeros(n, bool)
+        f.T_cw = np.array(T_cw, dtype=float)
+        f.prior = prior
+        pts = _View()
+        pts.mp_pos = np.asarray(Pw, dtype=float)
+        pts.mp_bad = np.zeros(n, bool) if bad is None else np.asarray(bad, bool)
+        n_inl = Optimizer.pose_optimization(f, pts)
+        return f.T_cw, f.outlier, n_inl
+
     # ------------------------------------------------------------------ local bundle adjustment
     @staticmethod
     def local_bundle_adjustment(kf, map_, n_covisible: int = 10, iterations: int = 10,

@@ -440,7 +440,7 @@ class Tracking:
         Optimizer.pose_optimization(frame, self.map)
         return self._discard_outliers(frame) >= 10
 
-    def shading_points(self, frame: Frame):
+    def shading_points(self):
         """Points of the last frame's faint texture spread over the whole view, for
         :meth:`refine_on_one_patch`: per ``shading_cell`` grid cell the pixel with the largest
         minimum eigenvalue of the half-resolution structure tensor (cv2.cornerMinEigenVal: the
@@ -514,7 +514,7 @@ class Tracking:
         close = (frame.depth[inl] > 0) & (frame.depth[inl] < frame.th_depth)
         if np.count_nonzero(close) > float(self.p["shading_max_close"]) * len(inl):
             return 0   # near points: stereo depth and parallax already separate the two
-        got = self.shading_points(frame)
+        got = self.shading_points()
         if got is None:
             return 0
         Pw, p0 = got
@@ -532,31 +532,21 @@ class Tracking:
             return 0
         idx = np.nonzero(frame.mp_ids >= 0)[0]
         n, m = len(idx), len(Pw)
-
-        class _View:   # the frame's matched keypoints plus the shading points, for the optimizer
-            pass
-        f = _View()
-        f.fx, f.fy, f.cx, f.cy, f.bf = frame.fx, frame.fy, frame.cx, frame.cy, frame.bf
-        f.uv = np.concatenate([frame.uv[idx], p1.astype(frame.uv.dtype)])
-        f.ur = np.concatenate([frame.ur[idx], -np.ones(m, frame.ur.dtype)])
+        ids = frame.mp_ids[idx]
         # the shading points get a level of their own, weighted by shading_weight (1 px sigma at 1)
         lv = len(frame.inv_level_sigma2)
-        f.octave = np.concatenate([frame.octave[idx], np.full(m, lv, frame.octave.dtype)])
-        f.inv_level_sigma2 = np.append(frame.inv_level_sigma2, float(self.p["shading_weight"]))
-        f.mp_ids = np.arange(n + m)
-        f.outlier = np.zeros(n + m, bool)
-        f.T_cw = frame.T_cw.copy()
-        f.prior = prior
-
-        class _Points:
-            pass
-        pts = _Points()
-        pts.mp_pos = np.concatenate([self.map.mp_pos[frame.mp_ids[idx]], Pw])
-        pts.mp_bad = np.zeros(n + m, bool)
-        if Optimizer.pose_optimization(f, pts) < 10:
+        T_cw, outlier, n_inl = Optimizer.pose_from_points(
+            frame, frame.T_cw,
+            np.concatenate([frame.uv[idx], p1.astype(frame.uv.dtype)]),
+            np.concatenate([frame.ur[idx], -np.ones(m, frame.ur.dtype)]),
+            np.concatenate([frame.octave[idx], np.full(m, lv, frame.octave.dtype)]),
+            np.append(frame.inv_level_sigma2, float(self.p["shading_weight"])),
+            np.concatenate([self.map.mp_pos[ids], Pw]),
+            bad=np.concatenate([self.map.mp_bad[ids], np.zeros(m, bool)]), prior=prior)
+        if n_inl < 10:
             return 0
-        frame.set_pose(f.T_cw)
-        frame.outlier[idx] = f.outlier[:n]
+        frame.set_pose(T_cw)
+        frame.outlier[idx] = outlier[:n]
         return m
 
     def track_reference_keyframe(self, frame: Frame) -> bool:
