@@ -320,3 +320,38 @@ def test_hamming_knn2_equals_full_matrix():
     np.testing.assert_array_equal(d1[:, 0], D[:5, 0])
     assert (d1[:, 1] == 256).all() and (i1[:, 1] == -1).all()
     assert hamming_knn2(a[:0], b)[0].shape == (0, 2)
+
+
+def test_feature_grid_pairs_equal_brute_force_radius_search():
+    """FeatureGrid.pairs_within (the matcher's projection search) returns exactly the pairs a
+    brute-force distance matrix puts within each point's radius: radii smaller and larger than a
+    cell, projections off the image and at its corners, non-finite ones (none), keypoints on cell
+    borders; the best-of-two resolution does not depend on the pair order."""
+    from mdr_slam.pose.frame import FeatureGrid
+    from mdr_slam.pose.matcher import _best_two
+    rng = np.random.RandomState(3)
+    kp = rng.uniform(0, [752, 480], (1500, 2)).astype(np.float32)
+    kp[:20] = np.round(kp[:20] / 16.0) * 16.0                    # exactly on cell borders
+    uv = rng.uniform([-40, -40], [792, 520], (700, 2))
+    uv[:5] = [[0, 0], [751.9, 479.9], [-30, 10], [760, 470], [376, -25]]
+    r = rng.uniform(0.5, 40.0, 700)
+    uv[5:8] = np.nan
+    g = FeatureGrid(kp)
+    i, j, d = g.pairs_within(uv[:, 0], uv[:, 1], r)
+    D = np.hypot(kp[None, :, 0].astype(float) - uv[:, None, 0], kp[None, :, 1] - uv[:, None, 1])
+    with np.errstate(invalid="ignore"):
+        ref = set(zip(*np.nonzero(D <= r[:, None])))
+    got = list(zip(i.tolist(), j.tolist()))
+    assert len(got) == len(set(got)) and set(got) == {(int(a), int(b)) for a, b in ref}
+    np.testing.assert_allclose(d, D[i, j])
+    assert len(ref) > 3000
+    e = FeatureGrid(np.zeros((0, 2)))
+    assert len(e.pairs_within(uv[:, 0], uv[:, 1], r)[0]) == 0
+    # best pair per point with exact distance ties: the same whatever order the pairs come in
+    dist = rng.randint(0, 4, len(i)).astype(np.int32)
+    b1, s1, o1 = _best_two(i, dist, j)
+    p = rng.permutation(len(i))
+    b2, s2, o2 = _best_two(i[p], dist[p], j[p])
+    np.testing.assert_array_equal(j[b1], j[p][b2])
+    np.testing.assert_array_equal(s1, s2)
+    np.testing.assert_array_equal(o1, o2)

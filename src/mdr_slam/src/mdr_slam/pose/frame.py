@@ -18,7 +18,7 @@ import numpy as np
 
 from .orb import TH_HIGH, TH_LOW, ORBextractor, expand_ranges, hamming
 
-__all__ = ["Frame", "compute_stereo_matches"]
+__all__ = ["Frame", "FeatureGrid", "compute_stereo_matches"]
 
 _POOL = None
 
@@ -57,26 +57,29 @@ def compute_stereo_matches(left: np.ndarray, right: np.ndarray, uv_l, oct_l, des
     # +-2*scale[o] rows. This yields exactly the pairs passing the row and octave tests, instead
     # of a band sized for the coarsest octave that is mostly thrown away.
     vl = uv_l[:, 1]
-    oct_r = np.minimum(np.asarray(oct_r), len(scale) - 1)
+    nlev = len(scale)
+    oct_r = np.minimum(np.asarray(oct_r), nlev - 1)
     oct_l = np.asarray(oct_l)
-    pls, prs = [], []
-    r_sorted = np.argsort(uv_r[:, 1], kind="stable")
-    for o in np.unique(oct_r):
-        rsel = r_sorted[oct_r[r_sorted] == o]        # octave o, sorted by row (stable)
-        lsel = np.nonzero(np.abs(oct_l - o) <= 1)[0]
-        if len(lsel) == 0:
-            continue
-        vr = uv_r[rsel, 1]
-        rad = 2.0 * scale[o]
-        lo = np.searchsorted(vr, vl[lsel] - (rad + 0.01), side="left")
-        hi = np.searchsorted(vr, vl[lsel] + (rad + 0.01), side="right")
-        a, b = expand_ranges(lo, hi)
-        a, b = lsel[a], rsel[b]
-        keep = np.abs(vl[a] - uv_r[b, 1]) <= rad   # the exact (float32) row test
-        pls.append(a[keep])
-        prs.append(b[keep])
-    pl_ = np.concatenate(pls) if pls else np.zeros(0, np.int64)
-    pr_ = np.concatenate(prs) if prs else np.zeros(0, np.int64)
+    # right keypoints sorted by (octave, row) (stable: ties in right-index order); one lookup per
+    # (left keypoint, octave o-1..o+1) in the combined key octave * span + row
+    span = float(max(np.max(uv_r[:, 1]), np.max(vl)) + 4.0 * scale[-1] + 8.0)
+    key_r = oct_r * span + uv_r[:, 1]
+    r_sorted = np.argsort(key_r, kind="stable")
+    key_sorted = key_r[r_sorted]
+    present = np.zeros(nlev, bool)
+    present[oct_r] = True
+    lq = np.repeat(np.arange(n), 3)
+    oq = np.repeat(oct_l, 3) + np.tile(np.array([-1, 0, 1]), n)
+    valid = (oq >= 0) & (oq < nlev)
+    valid[valid] = present[oq[valid]]
+    lq, oq = lq[valid], oq[valid]
+    rad = 2.0 * scale[oq]
+    lo = np.searchsorted(key_sorted, oq * span + (vl[lq] - (rad + 0.01)), side="left")
+    hi = np.searchsorted(key_sorted, oq * span + (vl[lq] + (rad + 0.01)), side="right")
+    a, b = expand_ranges(lo, hi)
+    pl_, pr_ = lq[a], r_sorted[b]
+    keep = np.abs(vl[pl_] - uv_r[pr_, 1]) <= rad[a]   # the exact (float32) row test
+    pl_, pr_ = pl_[keep], pr_[keep]
     du = uv_l[pl_, 0] - uv_r[pr_, 0] - doffs
     ok = (du >= 0) & (du <= max_d)
     pl_, pr_ = pl_[ok], pr_[ok]
@@ -85,9 +88,10 @@ def compute_stereo_matches(left: np.ndarray, right: np.ndarray, uv_l, oct_l, des
     dist = hamming(desc_l[pl_], desc_r[pr_])
     # best pair per left keypoint: one sort on (left, distance, right row rank); ties go to the
     # right keypoint first in row order, as ORB-SLAM2's scan of its row index
-    rank = np.empty(len(r_sorted), np.int64)
-    rank[r_sorted] = np.arange(len(r_sorted))
-    nr = len(r_sorted)
+    row_sorted = np.argsort(uv_r[:, 1], kind="stable")
+    rank = np.empty(len(row_sorted), np.int64)
+    rank[row_sorted] = np.arange(len(row_sorted))
+    nr = len(row_sorted)
     o = np.argsort((pl_.astype(np.int64) * 257 + dist) * nr + rank[pr_], kind="stable")
     pl_, pr_, dist = pl_[o], pr_[o], dist[o]
     first = np.r_[True, pl_[1:] != pl_[:-1]]
@@ -106,24 +110,30 @@ def compute_stereo_matches(left: np.ndarray, right: np.ndarray, uv_l, oct_l, des
     il, ir, uL, vL, uR0 = il[inb], ir[inb], uL[inb], vL[inb], uR0[inb]
     if len(il) == 0:
         return ur, depth
-    # patches gathered as whole windows of a strided view (4x cheaper than per-pixel indices)
+    # patches gathered as whole windows of a strided view (4x cheaper than per-pixel indices),
+    # then laid out match-last: (11, 11, M) and (11, 21, M), so each shifted window below is one
+    # contiguous block and the SAD a sum over leading axes (half the time of summing 121-pixel
+    # rows per match)
     win_view = np.lib.stride_tricks.sliding_window_view
     pl = win_view(left, (2 * _W + 1, 2 * _W + 1))[vL - _W, uL - _W].astype(np.int16)  # (M,11,11)
     pl -= left[vL, uL].astype(np.int16)[:, None, None]                  # ORB-SLAM2: minus centre
-    strip = win_view(right, (2 * _W + 1, 2 * (_W + _L) + 1))[vL - _W, uR0 - _W - _L].astype(
-        np.int16)                                                       # (M, 11, 21)
+    pl = np.ascontiguousarray(pl.transpose(1, 2, 0))                    # (11, 11, M)
+    strip = np.ascontiguousarray(win_view(right, (2 * _W + 1, 2 * (_W + _L) + 1))[
+        vL - _W, uR0 - _W - _L].astype(np.int16).transpose(1, 2, 0))    # (11, 21, M)
     shifts = np.arange(-_L, _L + 1)
-    # the 11 shifted windows, each minus its centre pixel, in int16 (|differences| <= 510): one
-    # (M, 11, 11) buffer reused per shift (30 % less CPU than materialising all 11 at once)
+    # the 11 shifted windows, each minus its centre pixel, in int16 (|differences| <= 510), one
+    # (11, 11, M) buffer reused per shift; the sums (<= 121 * 510 < 2^16) in uint16
     M = len(il)
-    sad = np.empty((M, 2 * _L + 1), np.float32)
-    centre = strip[:, _W, _W:_W + 2 * _L + 1]
-    buf = np.empty((M, 2 * _W + 1, 2 * _W + 1), np.int16)
+    sad_k = np.empty((2 * _L + 1, M), np.uint16)
+    centre = strip[_W, _W:_W + 2 * _L + 1]                              # (11, M)
+    buf = np.empty((2 * _W + 1, 2 * _W + 1, M), np.int16)
+    absd = buf.reshape(-1, M).view(np.uint16)
     for k in range(2 * _L + 1):
-        np.subtract(strip[:, :, k:k + 2 * _W + 1], pl, out=buf)
-        buf -= centre[:, k, None, None]
+        np.subtract(strip[:, k:k + 2 * _W + 1], pl, out=buf)
+        buf -= centre[k]
         np.abs(buf, out=buf)
-        sad[:, k] = buf.reshape(M, -1).sum(axis=1, dtype=np.int32)
+        np.add.reduce(absd, axis=0, dtype=np.uint16, out=sad_k[k])
+    sad = sad_k.T.astype(np.float32)                                    # (M, 11)
     k = np.argmin(sad, axis=1)
     interior = (k > 0) & (k < 2 * _L)
     m = np.arange(len(k))
@@ -149,6 +159,72 @@ def compute_stereo_matches(left: np.ndarray, right: np.ndarray, uv_l, oct_l, des
     ur[il] = u_right[keep]
     depth[il] = bf / disp[keep]
     return ur, depth
+
+
+class FeatureGrid:
+    """Keypoints bucketed in square cells (ORB-SLAM2's Frame::mGrid and GetFeaturesInArea),
+    answering every (projection, keypoint) pair within a per-projection radius at once.
+
+    The keypoints are sorted by cell (row-major), so the cells of one grid row that a search
+    circle overlaps are one contiguous run: per projection and overlapped row, two
+    ``searchsorted`` give the run, ``expand_ranges`` the candidate pairs, and the exact radius
+    test keeps the pairs inside. No Python loop. Cells of 10 px (ORB-SLAM2's 64 columns over
+    640 px). On the sample bag's projection searches: 1.5 ms per search against 2.2 ms for a
+    k-d tree ``sparse_distance_matrix`` at the largest radius, which also leaves 3x the pairs
+    for the matcher's masks.
+    """
+
+    def __init__(self, uv: np.ndarray, cell: float = 10.0):
+        self.uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+        self.x, self.y = self.uv[:, 0].copy(), self.uv[:, 1].copy()   # contiguous for gathers
+        self.cell = float(cell)
+        if len(self.uv):
+            c = np.floor(self.uv / self.cell).astype(np.int64)
+            c = np.maximum(c, 0)
+            self.ncols = int(c[:, 0].max()) + 1
+            self.nrows = int(c[:, 1].max()) + 1
+            key = c[:, 1] * self.ncols + c[:, 0]
+        else:
+            self.ncols = self.nrows = 0
+            key = np.zeros(0, np.int64)
+        self.order = np.argsort(key, kind="stable")
+        self.keys = key[self.order]
+
+    def pairs_within(self, u, v, radius):
+        """(point index i, keypoint index j, distance) for every keypoint within ``radius[i]``
+        px of (u[i], v[i]); non-finite projections have none."""
+        u = np.asarray(u, dtype=np.float64)
+        v = np.asarray(v, dtype=np.float64)
+        r = np.broadcast_to(np.asarray(radius, dtype=np.float64), u.shape)
+        none = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+        if len(u) == 0 or len(self.keys) == 0:
+            return none
+        ok = np.isfinite(u) & np.isfinite(v) & np.isfinite(r) & (r >= 0)
+        g = self.cell
+        with np.errstate(invalid="ignore"):
+            cx0 = np.clip(np.floor((u - r) / g), 0, self.ncols - 1)
+            cx1 = np.clip(np.floor((u + r) / g), -1, self.ncols - 1)
+            cy0 = np.clip(np.floor((v - r) / g), 0, self.nrows)
+            cy1 = np.clip(np.floor((v + r) / g), -1, self.nrows - 1)
+        ok &= (cx1 >= cx0) & (cy1 >= cy0)
+        pts = np.nonzero(ok)[0]
+        if len(pts) == 0:
+            return none
+        cx0, cx1 = cx0[pts].astype(np.int64), cx1[pts].astype(np.int64)
+        cy0, cy1 = cy0[pts].astype(np.int64), cy1[pts].astype(np.int64)
+        owner, row = expand_ranges(cy0, cy1 + 1)            # (point, grid row) per overlapped row
+        base = row * self.ncols
+        lo = np.searchsorted(self.keys, base + cx0[owner], side="left")
+        hi = np.searchsorted(self.keys, base + cx1[owner], side="right")
+        which, pos = expand_ranges(lo, hi)
+        i = pts[owner[which]]
+        j = self.order[pos]
+        dx = self.x[j] - u[i]
+        dy = self.y[j] - v[i]
+        d2 = dx * dx + dy * dy
+        rr = r[i]
+        keep = d2 <= rr * rr
+        return i[keep], j[keep], np.sqrt(d2[keep])
 
 
 class Frame:
@@ -192,16 +268,15 @@ class Frame:
         self.outlier = np.zeros(self.N, dtype=bool)
         self.T_cw: Optional[np.ndarray] = None
         self.ref_kf = None
-        self._tree = None
+        self._grid = None
         self.build_ms = self.build_cpu_ms = 0.0   # wall and CPU time of making it (System.make_frame)
 
-    # --- the keypoint "grid": a k-d tree answers radius queries for all projections at once
+    # --- the keypoint grid: radius queries for all projections at once
     @property
-    def tree(self):
-        if self._tree is None:
-            from scipy.spatial import cKDTree
-            self._tree = cKDTree(self.uv.astype(np.float64) if self.N else np.zeros((0, 2)))
-        return self._tree
+    def grid(self) -> FeatureGrid:
+        if self._grid is None:
+            self._grid = FeatureGrid(self.uv)
+        return self._grid
 
     def set_pose(self, T_cw: np.ndarray) -> None:
         from .optimizer import normalize_pose
@@ -221,7 +296,7 @@ class Frame:
         self.mp_ids = np.concatenate([self.mp_ids, -np.ones(n, self.mp_ids.dtype)])
         self.outlier = np.concatenate([self.outlier, np.zeros(n, bool)])
         self.N += n
-        self._tree = None
+        self._grid = None
         return idx
 
     @property

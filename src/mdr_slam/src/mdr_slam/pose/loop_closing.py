@@ -655,7 +655,7 @@ class _KeyFrameView:
 
     def __init__(self, kf, T_cw):
         for name in ("fx", "fy", "cx", "cy", "bf", "width", "height", "uv", "ur", "octave",
-                     "desc", "angle", "scale", "log_scale", "nlevels", "tree", "N"):
+                     "desc", "angle", "scale", "log_scale", "nlevels", "grid", "N"):
             setattr(self, name, getattr(kf, name))
         self.T_cw = T_cw
         self.mp_ids = np.where(kf.mp_ids >= 0, -2, -1)   # occupied keypoints are not candidates

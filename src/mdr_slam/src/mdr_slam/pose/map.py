@@ -41,6 +41,7 @@ class KeyFrame:
         self.log_scale, self.nlevels = frame.log_scale, frame.nlevels
         self.width, self.height = frame.width, frame.height
         self._tree = None
+        self._grid = None
         self.mp_ids = frame.mp_ids.copy()
         self.T_cw = frame.T_cw.copy()
         self.bad = False
@@ -57,11 +58,19 @@ class KeyFrame:
 
     @property
     def tree(self):
-        """k-d tree of the keypoints (ORBmatcher projection searches into a keyframe)."""
+        """k-d tree of the keypoints (nearest keypoint of a pixel: loop point fusion)."""
         if self._tree is None:
             from scipy.spatial import cKDTree
             self._tree = cKDTree(self.uv.astype(np.float64))
         return self._tree
+
+    @property
+    def grid(self):
+        """The keypoints' FeatureGrid (ORBmatcher projection searches into a keyframe)."""
+        if self._grid is None:
+            from .frame import FeatureGrid
+            self._grid = FeatureGrid(self.uv)
+        return self._grid
 
     def set_pose(self, T_cw: np.ndarray) -> None:
         from .optimizer import normalize_pose

@@ -1,10 +1,9 @@
 """ORBmatcher: projection search and descriptor matching, vectorized (ORB-SLAM2 ORBmatcher).
 
-ORB-SLAM2 loops over map points and asks the frame's 64x48 cell grid for keypoints near each
-projection. Here all projections are answered at once: a k-d tree of the frame's keypoints
-(Frame.tree) and a k-d tree of the projections give every (point, keypoint) pair within the
-largest search radius (cKDTree.sparse_distance_matrix, C++), and masks apply the per-point radius,
-pyramid-level window, right-image check and "keypoint still free" test. Distances are Hamming on
+ORB-SLAM2 loops over map points and asks the frame's cell grid for keypoints near each
+projection. Here all projections are answered at once: the frame's FeatureGrid gives every
+(point, keypoint) pair within each point's radius (vectorized, frame.FeatureGrid.pairs_within),
+and masks apply the pyramid-level window, right-image check and "keypoint still free" test. Distances are Hamming on
 the candidate pairs only; best/second-best per point and one point per keypoint are resolved with
 sorts, not loops.
 """
@@ -22,11 +21,13 @@ HISTO_LENGTH = 30
 
 
 def _best_two(owner: np.ndarray, dist: np.ndarray, other: np.ndarray):
-    """Per owner: index (into the pair arrays) of its best pair, and its second-best distance."""
+    """Per owner: index (into the pair arrays) of its best pair, and its second-best distance
+    (integer distances below 65536, as Hamming; ``other`` >= 0)."""
     if len(owner) == 0:
         z = np.zeros(0, dtype=np.int64)
         return z, z, z
-    o = np.lexsort((dist, owner))
+    # one sort on (owner, distance, other): ties go to the lower ``other`` whatever the pair order
+    o = np.argsort((owner.astype(np.int64) * 65536 + dist) * (int(other.max()) + 1) + other)
     ow = owner[o]
     first = np.r_[True, ow[1:] != ow[:-1]]
     best = o[first]
@@ -79,19 +80,14 @@ class ORBmatcher:
         given, a keypoint with a right coordinate must also match it within the radius. Only free
         keypoints (frame.mp_ids < 0) are candidates.
         """
-        from scipy.spatial import cKDTree
         P = len(u)
         empty = (np.zeros(0, np.int64),) * 2 + (np.zeros(0, np.int32),)
         if P == 0 or frame.N == 0:
             return empty
-        uv = np.column_stack([u, v]).astype(np.float64)
-        rmax = float(np.max(radius))
-        S = cKDTree(uv).sparse_distance_matrix(frame.tree, rmax, output_type="ndarray")
-        if len(S) == 0:
+        i, j, _ = frame.grid.pairs_within(u, v, radius)
+        if len(i) == 0:
             return empty
-        i = S["i"].astype(np.int64)
-        j = S["j"].astype(np.int64)
-        ok = (S["v"] <= radius[i]) & (frame.mp_ids[j] == -1)
+        ok = frame.mp_ids[j] == -1
         oc = frame.octave[j]
         ok &= (oc >= lvl_lo[i]) & (oc <= lvl_hi[i])
         if ur is not None:

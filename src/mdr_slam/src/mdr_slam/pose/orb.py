@@ -156,15 +156,19 @@ class ORBextractor:
         gx, gy = self.grid
         cell = (np.minimum((uv[:, 0] * gx / w).astype(int), gx - 1) * gy +
                 np.minimum((uv[:, 1] * gy / h).astype(int), gy - 1))
-        # rank within cell by response (lexsort: last key primary), keep the best per cell
-        order = np.lexsort((-resp, cell))
+        # rank within cell by response (two stable argsorts: by response, then by cell), keep
+        # the best per cell
+        order = np.argsort(-resp, kind="stable")
+        order = order[np.argsort(cell[order], kind="stable")]
         c_sorted = cell[order]
         first = np.searchsorted(c_sorted, c_sorted, side="left")
         rank = np.arange(len(order)) - first
         per_cell = max(2, int(np.ceil(self.nfeatures / float(gx * gy))))
         keep = order[rank < per_cell]
         if len(keep) < self.nfeatures:   # textureless cells: refill with the strongest of the rest
-            rest = np.setdiff1d(np.arange(len(kps)), keep)
+            free = np.ones(len(kps), bool)
+            free[keep] = False
+            rest = np.nonzero(free)[0]
             rest = rest[np.argsort(-resp[rest])][: self.nfeatures - len(keep)]
             keep = np.concatenate([keep, rest])
         keep = keep[np.argsort(-resp[keep])][: self.nfeatures]
