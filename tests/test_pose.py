@@ -766,7 +766,8 @@ def test_triangulation_yields_to_a_waiting_keyframe_only_when_live(room, sequenc
 
 def test_loop_drift_gate_rejects_implausible_corrections():
     """False loops in symmetric places (#6, garage seed 4: bays 11.7 m apart, turned 180 deg,
-    passed the 3-D RANSAC) are refused when the correction exceeds the plausible drift."""
+    passed the 3-D RANSAC) are refused when the correction exceeds the plausible drift; the
+    displacement a correction's own rotation explains is allowed on top."""
     from mdr_slam.pose.loop_closing import LoopClosing
     mp, _ = _loop_map()
     lc = LoopClosing.__new__(LoopClosing)   # the gate only needs the map and the parameters
@@ -779,6 +780,22 @@ def test_loop_drift_gate_rejects_implausible_corrections():
     far = make_T(np.eye(3), [6.0, 0.0, 0.0])
     assert not lc.plausible_correction(kf, cand, far)
     assert len(lc.rejected) == 2
+    # a heading error explains its own displacement (office_loop_rotation seed 7: 22 deg of yaw
+    # drift, the true loop moved the keyframe 1.24 m over 2.94 m): turned 25 deg about a pivot
+    # 0.9 path lengths away the keyframe moves 0.39 path lengths, over loop_max_drift (0.3) alone
+    P = np.array([k.T_wc[:3, 3] for k in sorted(mp.good_keyframes(), key=lambda k: k.id)
+                  if cand.id <= k.id <= kf.id])
+    path = float(np.sum(np.linalg.norm(np.diff(P, axis=0), axis=1)))
+    p = kf.T_wc[:3, 3]
+    c = p + np.array([0.9 * path, 0.0, 0.0])
+    R = Rotation.from_euler("y", 25.0, degrees=True).as_matrix()
+    turned = make_T(R, c - R @ c)
+    moved = np.linalg.norm(turned[:3, :3] @ p + turned[:3, 3] - p)
+    assert 0.35 * path < moved < 0.45 * path
+    assert lc.plausible_correction(kf, cand, turned)
+    shifted = make_T(np.eye(3), [moved, 0.0, 0.0])               # the same move without the turn
+    assert not lc.plausible_correction(kf, cand, shifted)
+    assert len(lc.rejected) == 3
 
 
 @pytest.fixture(scope="module")
