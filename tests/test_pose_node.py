@@ -220,7 +220,7 @@ def test_orb_node_with_the_orbslam3_backend_or_without_it(rospy_client, start_pr
     from mdr_slam.camera import StereoCamera
     from mdr_slam.geometry import inv_T
     from mdr_slam.pose.synthetic import BoxRoom, orbit_trajectory
-    from mdr_slam_msgs.msg import TrackingState
+    from mdr_slam_msgs.msg import KeyFrameArray, TrackingState
     from geometry_msgs.msg import PoseStamped
 
     cam = StereoCamera.from_rectified(640, 480, 400.0, 400.0, 320.0, 240.0, 0.12)
@@ -240,9 +240,10 @@ def test_orb_node_with_the_orbslam3_backend_or_without_it(rospy_client, start_pr
                                 "left/image:=/o3/left/image", "right/image:=/o3/right/image",
                                 "left/camera_info:=/o3/left/info",
                                 "right/camera_info:=/o3/right/info"], "o3")
-    got, states = [], []
+    got, states, kfs = [], [], []
     subs = [rospy.Subscriber("/mdr/pose", PoseStamped, got.append),
-            rospy.Subscriber("/mdr/tracking_state", TrackingState, states.append)]
+            rospy.Subscriber("/mdr/tracking_state", TrackingState, states.append),
+            rospy.Subscriber("/mdr/keyframes", KeyFrameArray, kfs.append)]
     send = _stereo_rig(rospy, "/o3", cam, subs, node)
     base = rospy.Time.now()
     for i, (l, r) in enumerate(frames):
@@ -259,5 +260,11 @@ def test_orb_node_with_the_orbslam3_backend_or_without_it(rospy_client, start_pr
         assert "backend 'orbslam3' unavailable" in log and "stubbed away" in log
     else:
         assert "unavailable" not in log and "ORB-SLAM" in log
+    # keyframe events from either tracker: ORB-SLAM3's are read back from it, each announced
+    # once as NEW_KEYFRAME with the stamp of a frame that was sent
+    sent = {round((base + rospy.Duration(0.1 * (i + 1))).to_sec(), 6) for i in range(len(frames))}
+    new = [k for m in kfs if m.reason == KeyFrameArray.NEW_KEYFRAME for k in m.keyframes]
+    assert len(new) >= 2 and len({k.id for k in new}) == len(new), kfs
+    assert all(round(k.stamp.to_sec(), 6) in sent for k in new)
     node.stop()
     assert os.path.exists(traj_path) and len(np.loadtxt(traj_path)) == ok

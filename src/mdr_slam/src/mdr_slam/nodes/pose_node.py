@@ -493,6 +493,8 @@ class OrbNode:
         if res.is_keyframe and res.T_map_cam is not None:
             self.publish_keyframes(stamp, 0, self.system.correction_id,
                                    {res.keyframe_id: (res.stamp, res.T_map_cam)})
+        if getattr(res, "new_keyframes", None):   # orbslam3: keyframes known a frame late
+            self.publish_keyframes(stamp, 0, self.system.correction_id, res.new_keyframes)
         if res.T_map_cam is not None:
             self.relay.publish(stamp, res.T_map_cam, self.T_map_odom)
 

@@ -30,6 +30,7 @@ __all__ = ["System", "TrackResult", "DEFAULT_PARAMS", "make_system"]
 DEFAULT_PARAMS = {
     "backend": "mdr",            # mdr (this tracker) or orbslam3 (ORB-SLAM3's C++ tracker via pyorbslam3)
     "orbslam3_vocabulary": "",   # orbslam3: DBoW2 text vocabulary (ORBvoc.txt); empty: ours, exported
+    "orbslam3_keyframe_poll": 1,   # orbslam3: read its keyframes back every N frames (0: never)
     "n_features": 1500,          # ORB features per image (ORB-SLAM2 EuRoC/KITTI: 1200-2000)
     "scale_factor": 1.2,
     "n_levels": 8,
@@ -130,6 +131,9 @@ class TrackResult:
     track_cpu_ms: float = 0.0                  # CPU of the threads making (left image) and tracking it
     lock_wait_ms: float = 0.0                  # waiting for the map lock (mapping threads)
     frame_ms: float = 0.0                      # Frame: ORB on both images and stereo matching
+    # keyframes that appeared since the last result, with their own stamps and poses (backends
+    # that learn of a keyframe after the frame it was made from: orbslam3); None for System
+    new_keyframes: Optional[Dict[int, Tuple[float, np.ndarray]]] = None
 
 
 class System:
