@@ -185,3 +185,26 @@ def test_orbslam3_keyframes_are_read_back_and_diffed_without_pyorbslam3(tmp_path
     assert sorted(sys_.keyframe_poses()) == [1, 2] and sys_._loops == 1
     sys_.slam.kfs = {}                                           # an empty file (map reset)
     assert sys_.poll_keyframes() == (None, None) and sys_.keyframe_poses() == {}
+
+
+@pytest.mark.skipif(not available(), reason="pyorbslam3 is not installed")
+def test_mdr_run_with_orbslam3_anchors_the_map_to_its_keyframes():
+    """``mdr run --set pose.backend=orbslam3``: the fused points are anchored to the keyframes
+    read back from ORB-SLAM3 (so its corrections move them), not left unanchored."""
+    from mdr_slam.io.datasets import load_kitti
+    from mdr_slam.pipeline import InputFrame, Pipeline, PipelineConfig
+    ds = load_kitti(shared_data("kitti06_clip"))
+    pipe = Pipeline(ds.camera, PipelineConfig(pose_source="orb", preset="kitti",
+                                              pose_params={"backend": "orbslam3"}))
+    try:
+        for i, (stamp, left, right) in enumerate(ds):
+            if i == 12:
+                break
+            pipe.process(InputFrame(i, stamp, left, right))
+        kfs = pipe.tracker.keyframe_poses()
+    finally:
+        pipe.tracker.shutdown()
+    anchors = pipe.map.anchors
+    assert len(kfs) >= 4 and len(anchors) >= 4 and set(anchors) <= set(kfs)
+    anchor_id = pipe.map.to_cloud()["anchor_id"]
+    assert len(anchor_id) > 1000 and np.mean(anchor_id >= 0) > 0.9

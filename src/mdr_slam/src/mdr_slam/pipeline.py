@@ -134,6 +134,7 @@ class Pipeline:
                                    ("frames_lost", 0), ("points_published", 0),
                                    ("local_ba_corrections", 0), ("loop_closures", 0)])
         self._anchor = (None, None)           # (reference keyframe id, T_map_kf) of this frame
+        self._late_ref = -1                   # newest keyframe of a backend without references
         self.poses: List[tuple] = []          # (stamp, T_map_cam) of every posed frame
         self.states: List[tuple] = []         # (stamp, state)
 
@@ -185,12 +186,17 @@ class Pipeline:
                             {k: v[1] for k, v in kfs.items()})
         T = res.T_map_cam if res.T_map_cam is not None and is_valid_T(res.T_map_cam) else None
         ref = res.keyframe_id if res.is_keyframe and res.keyframe_id >= 0 else res.ref_keyframe_id
+        new = getattr(res, "new_keyframes", None)
+        if ref < 0 and new:           # orbslam3: keyframes learnt a frame late, no reference
+            self._late_ref = max(new)     # keyframe per frame: the newest one anchors the points
+        if ref < 0:
+            ref = self._late_ref
         if T is not None and ref is not None and ref >= 0:
             kf_poses = self.tracker.keyframe_poses()
             self._anchor = (int(ref), kf_poses[ref][1]) if ref in kf_poses else (None, None)
         else:
             self._anchor = (None, None)
-        return T, res.state, bool(res.is_keyframe)
+        return T, res.state, bool(res.is_keyframe or new)
 
     # ------------------------------------------------------------------ outputs
     def trajectory(self):

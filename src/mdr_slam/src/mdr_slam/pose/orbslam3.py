@@ -25,7 +25,7 @@ After each ``track`` (every ``orbslam3_keyframe_poll`` frames) that file is read
 the map asynchronously, so it usually shows a frame after the one it was made from), and
 keyframes whose pose moved as ``corrections`` (``loop_closure`` when ORB-SLAM3 reports a big map
 change, else ``local_ba``), so /mdr/keyframes carries them and the depth and fusion nodes follow
-as with the built-in tracker. About 1 ms per frame (0.2-4 ms on the KITTI clip). What it does not
+as with the built-in tracker (``mdr run`` anchors each frame's points to the newest keyframe). About 1 ms per frame (0.2-4 ms on the KITTI clip). What it does not
 give: loop-corrected past poses of frames that are not keyframes (``trajectory()`` holds the
 poses as tracked). After ORB-SLAM3 loses track for good it starts a new map in its Atlas, with a
 new origin: poses jump, and the keyframes of the old map are no longer listed.
