@@ -25,9 +25,9 @@ After each ``track`` (every ``orbslam3_keyframe_poll`` frames) that file is read
 the map asynchronously, so it usually shows a frame after the one it was made from), and
 keyframes whose pose moved as ``corrections`` (``loop_closure`` when ORB-SLAM3 reports a big map
 change, else ``local_ba``), so /mdr/keyframes carries them and the depth and fusion nodes follow
-as with the built-in tracker (``mdr run`` anchors each frame's points to the newest keyframe). About 1 ms per frame (0.2-4 ms on the KITTI clip). What it does not
-give: loop-corrected past poses of frames that are not keyframes (``trajectory()`` holds the
-poses as tracked). After ORB-SLAM3 loses track for good it starts a new map in its Atlas, with a
+as with the built-in tracker (``mdr run`` anchors each frame's points to the newest keyframe).
+About 1 ms per frame (0.2-4 ms on the KITTI clip). What it does not give: loop-corrected past
+poses of frames that are not keyframes (``trajectory()`` holds the poses as tracked). After ORB-SLAM3 loses track for good it starts a new map in its Atlas, with a
 new origin: poses jump, and the keyframes of the old map are no longer listed.
 """
 from __future__ import annotations
@@ -179,13 +179,6 @@ def _read_keyframe_file(path: str):
     return np.asarray(traj.stamps, float), np.asarray(traj.matrices(), float)
 
 
-def _pose_moved(A: np.ndarray, B: np.ndarray, tol_m: float = 1e-4, tol_rad: float = 1e-4) -> bool:
-    if np.linalg.norm(A[:3, 3] - B[:3, 3]) > tol_m:
-        return True
-    c = (np.trace(A[:3, :3].T @ B[:3, :3]) - 1.0) / 2.0
-    return float(np.arccos(np.clip(c, -1.0, 1.0))) > tol_rad
-
-
 class _Pair:
     """What ``make_frame`` hands to ``track``: ORB-SLAM3 does its own feature work."""
 
@@ -288,6 +281,7 @@ class ORBSLAM3System:
         them. Keyframes are known by their stamps (the file has microseconds: the stamp of the
         frame fed within 2 us is used); ids count from 0 in order of appearance."""
         import bisect
+        from ..geometry import relative_motion
         with _stdout_silenced():
             self.slam.save_keyframe_trajectory_tum(self._kf_file)
         big_change = bool(self.slam.map_changed())   # loop closure / global BA / map merge
@@ -312,7 +306,8 @@ class ORBSLAM3System:
                 self._next_kf += 1
                 self._kf_ids[stamp] = kid
                 new[kid] = (stamp, T)
-            elif kid not in self._kf_poses or _pose_moved(self._kf_poses[kid][1], T):
+            elif kid not in self._kf_poses or \
+                    max(relative_motion(self._kf_poses[kid][1], T)) > 1e-4:   # 0.1 mm / rad
                 moved[kid] = (stamp, T)
             live[kid] = (stamp, T if kid in new or kid in moved else self._kf_poses[kid][1])
         self._kf_poses = live          # culled keyframes (and an abandoned map's) drop out
