@@ -1264,3 +1264,25 @@ def test_stereo_texture_errors_script_finds_the_noise_disparities(root_dir, tmp_
     assert n_rich > 1000
     assert sum(b["n"] * b["bad_share"] for b in rich) / n_rich < 0.05   # measured 0.01
     assert "| 0-2.5 |" in r.stdout
+
+
+def test_eval_pose_sim_aliases_and_summary(root_dir):
+    """scripts/eval_pose_sim.py --sequences all: the defaults and the 8 other seeds of the
+    README's table, each once; the summary gives mean / max ATE % and the loop ratios."""
+    import importlib.util
+    import os
+    spec = importlib.util.spec_from_file_location(
+        "eval_pose_sim", os.path.join(root_dir, "scripts", "eval_pose_sim.py"))
+    m = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(m)
+    names = m.expand_sequences("all")
+    assert len(names) == 13 and len(set(names)) == 13
+    assert names[:5] == m.DEFAULT.split(",") and "office_loop_rotation@7" in names
+    assert m.expand_sequences("office_loop, seeds,office_loop@5") == \
+        ["office_loop"] + m.SEEDS.split(",")
+    res = [{"sequence": "a", "lc": {"ate_percent_path": 0.4}, "lc_over_no_lc": 0.3},
+           {"sequence": "b", "lc": {"ate_percent_path": 1.2}, "lc_over_no_lc": 0.7},
+           {"sequence": "c", "lc": {"ate_percent_path": float("nan")}}]
+    s = m.summary(res)
+    assert "over 2 sequences: mean 0.800, max 1.20 (b), 1 above 1 %" in s
+    assert "0.30, 0.70 (1 of 2 at most 0.5)" in s
