@@ -4,7 +4,7 @@
     python scripts/eval_pose_sim.py [--out output/eval_pose_sim] [--sequences office_loop,office_loop@5,...]
                                     [--scale 1.0] [--rate 20] [--json FILE] [--no-compare]
                                     [--jobs 2] [--set KEY=VALUE]
-    python scripts/eval_pose_sim.py --sequences all --jobs 2    # the README's 13 sequences, ~10 min
+    python scripts/eval_pose_sim.py --sequences all --jobs 2    # the README's 13 sequences (7 min on 2 cores)
 
 Every sequence is rendered once by ``mdr_slam.sim.generate`` (752x480 at 20 Hz by default; an
 existing ``DIR/<name>/sequence.bag`` rendered with the same settings is reused) and tracked

@@ -27,14 +27,9 @@ import numpy as np
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(ROOT, "src", "mdr_slam", "src"))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-# name: (scene, trajectory kind, duration s, seed), as scripts/eval_pose_sim.py
-SEQUENCES = {
-    "office_loop": ("office", "loop", 30.0, 1),
-    "office_loop_rotation": ("office", "loop+pure_rotation", 30.0, 0),
-    "corridor_corner": ("corridor", "corner", 15.0, 3),
-    "garage_loop": ("garage", "loop", 30.0, 4),
-}
+from eval_pose_sim import SEQUENCES  # noqa: E402  (the same sequences and seeds)
 EDGES = (0.0, 2.5, 3.0, 3.5, 4.0, 5.0, 7.0, 10.0, np.inf)
 _W = 5
 
@@ -58,7 +53,7 @@ def measure(name: str, every: float, n_features: int = 1500) -> dict:
     from mdr_slam.sim.scene import make_scene
     from mdr_slam.sim.trajectory import build_trajectory
     base, _, seed_arg = name.partition("@")
-    scene_name, kind, duration, seed = SEQUENCES[base]
+    scene_name, kind, duration, seed = SEQUENCES[base][:4]
     seed = int(seed_arg) if seed_arg else seed
     scene = make_scene(scene_name, seed=seed)
     cam = sim_camera(scale=1.0)
