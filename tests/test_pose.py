@@ -51,6 +51,32 @@ def test_hamming_and_ranges():
     np.testing.assert_array_equal(idx, [2, 3, 0, 1, 2])
 
 
+def test_orb_features_spread_over_the_image():
+    """ORB-SLAM2 spreads each pyramid level's share of the features over the image (its octree);
+    cv2.ORB alone keeps the strongest corners, all on the most contrasted object. A frame whose
+    left half is contrasted and right half faint must still give the faint half its share (on
+    KITTI: the road and grass close to the car, which set the trajectory's scale)."""
+    import cv2
+    rng = np.random.RandomState(3)
+    h, w = 480, 752
+    blobs = cv2.GaussianBlur(rng.uniform(0, 1, (h, w)).astype(np.float32), (0, 0), 2.0)
+    blobs = (blobs - blobs.mean()) / blobs.std()
+    gain = np.where(np.arange(w) < w // 2, 60.0, 12.0)[None, :]
+    img = np.clip(128 + gain * blobs, 0, 255).astype(np.uint8)
+    ex = ORBextractor(1000)
+    uv, octave, _, desc = ex(img)
+    assert len(uv) == 1000 and desc.shape == (1000, 32)
+    faint = uv[:, 0] > w // 2 + 20
+    assert faint.mean() > 0.3
+    # every level keeps about its ORB-SLAM2 share, and each is spread: no 1/8 of the
+    # image (a 94 px column) holds more than a quarter of a level's features
+    counts = np.bincount(octave, minlength=ex.nlevels)
+    assert np.all(np.abs(counts - ex.level_quota) <= 0.1 * ex.level_quota + 2)
+    for lv in range(3):
+        col = np.bincount((uv[octave == lv, 0] * 8 / w).astype(int), minlength=8)
+        assert col.max() <= 0.25 * col.sum()
+
+
 def test_stereo_matching_gives_subpixel_depth(room, sequence):
     poses, images = sequence
     f = Frame(0.0, images[0][0], images[0][1], CAM, ORBextractor(1000))
@@ -1204,26 +1230,29 @@ def test_disparity_offset_check_finds_the_principal_point_difference(room, seque
     assert abs(fit2.offset_unit_scale) < 0.08
 
 
-def test_kitti_clip_tracked_with_its_measured_principal_point_difference():
-    """Real KITTI 06 (51 frames, 60 m): calib.txt gives both cameras one cx, but the disparities
-    measure 0.16-0.21 px short of the ground truth (scripts/check_stereo_offset.py), which
-    stretches the trajectory ~1.3 %; with doffs -0.2 (mdr import kitti --doffs) it is 0.3 %."""
+def test_kitti_clip_tracked_with_calib_txt():
+    """Real KITTI 06 (51 frames, 60 m) with calib.txt as shipped. Until stop 25 the features sat on
+    the most contrasted objects (trees, a facade 15-50 m away, none on the road and grass near the
+    car): far stereo depths set the scale, the trajectory came out 1.2 % long and the ATE 0.21 m
+    (0.056 m only with a -0.2 px principal point correction). Spread over the image as ORB-SLAM2
+    spreads them, the near ground sets it: measured 0.0495 m, 0.01 % long (ORB-SLAM3's C++
+    tracker through the orbslam3 backend: 0.053-0.064 m, 0.3 % long)."""
     from conftest import shared_data
     from mdr_slam.io.datasets import load_kitti
     from mdr_slam.pipeline import load_params
-    ates = []
-    for doffs in (None, -0.2):
-        ds = load_kitti(shared_data("kitti06_clip"), doffs=doffs)
-        s = System(ds.camera, load_params("pose", "kitti"), threads=False)
-        states = [s.track(stamp, left, right).state for stamp, left, right in ds]
-        s.shutdown()
-        assert states.count("OK") == len(ds)
-        ates.append(ate_rmse(s.trajectory(), ds.ground_truth))
-    print("KITTI 06 clip, built-in tracker: ATE %.4f m with calib.txt, %.4f m with doffs -0.2"
-          % tuple(ates))
-    # measured 0.195 and 0.058 m (AMD EPYC; 0.212 and 0.062 m before close_tracked_ratio)
-    assert ates[0] < 0.3
-    assert ates[1] < 0.09 and ates[1] < 0.6 * ates[0]
+    ds = load_kitti(shared_data("kitti06_clip"))
+    s = System(ds.camera, load_params("pose", "kitti"), threads=False)
+    states = [s.track(stamp, left, right).state for stamp, left, right in ds]
+    s.shutdown()
+    assert states.count("OK") == len(ds)
+    est = s.trajectory()
+    ate = ate_rmse(est, ds.ground_truth)
+    length = [np.linalg.norm(np.diff(t.matrices()[:, :3, 3], axis=0), axis=1).sum()
+              for t in (est, ds.ground_truth)]
+    print("KITTI 06 clip, built-in tracker: ATE %.4f m, path %.4f of the true length"
+          % (ate, length[0] / length[1]))
+    assert ate < 0.09
+    assert abs(length[0] / length[1] - 1.0) < 0.005
 
 
 def test_check_stereo_offset_script_reads_kittis_offset(root_dir):
@@ -1240,7 +1269,9 @@ def test_check_stereo_offset_script_reads_kittis_offset(root_dir):
                   r"\(([-+.\d]+) \+- [.\d]+ px at scale 1\)", r.stdout)
     assert m, r.stdout
     e, a, e1 = (float(x) for x in m.groups())
-    assert -0.3 < e < -0.1 and -0.3 < e1 < -0.1 and abs(a - 1.0) < 0.01   # measured -0.205, -0.160
+    # measured -0.205 (a = 1.0057) and -0.102 (-0.160 before stop 25's spread features): the two
+    # fits disagree, so by the script's own rule the offset is not to be trusted
+    assert -0.3 < e < -0.1 and -0.2 < e1 < -0.05 and abs(a - 1.0) < 0.01
     assert re.search(r"-> doffs [-+.\d]+ px: right cx = 60[12]\.\d+ \(left cx 601.8873\)", r.stdout)
 
 
