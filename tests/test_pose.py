@@ -77,6 +77,24 @@ def test_orb_features_spread_over_the_image():
         assert col.max() <= 0.25 * col.sum()
 
 
+def test_orb_orientation_and_pyramid_as_cv2(sequence):
+    """The extractor's own pyramid and intensity-centroid angles are cv2.ORB's: on the corners
+    cv2.ORB finds, the angles computed here agree with its own (to its fastAtan2's precision),
+    so the descriptors cv2.ORB computes for our corners are the ones it would have made."""
+    import cv2
+    img = sequence[1][0][0]
+    ex = ORBextractor(1000)
+    orb = cv2.ORB_create(nfeatures=2000, scaleFactor=ex.scale_factor, nlevels=ex.nlevels,
+                         edgeThreshold=19, patchSize=31, fastThreshold=12)
+    kps = orb.detect(img, None)
+    uv = cv2.KeyPoint_convert(kps).reshape(-1, 2)
+    octave = np.array([k.octave for k in kps])
+    ref = np.array([k.angle for k in kps])
+    ang = ex._angles(ex.pyramid(img), uv / ex.scale[octave][:, None], octave)
+    d = np.abs((ang - ref + 180.0) % 360.0 - 180.0)
+    assert len(kps) > 500 and octave.max() >= 3
+    assert d.max() < 0.05
+
 def test_stereo_matching_gives_subpixel_depth(room, sequence):
     poses, images = sequence
     f = Frame(0.0, images[0][0], images[0][1], CAM, ORBextractor(1000))

@@ -176,7 +176,7 @@ class ORBextractor:
             if not kps:
                 continue
             p = cv2.KeyPoint_convert(kps).reshape(-1, 2)
-            r = np.array(list(map(_RESPONSE, kps)), dtype=np.float32)
+            r = np.fromiter(map(_RESPONSE, kps), np.float32, count=len(kps))
             hh, ww = img.shape[:2]
             e = self.edge
             ok = (p[:, 0] >= e) & (p[:, 0] < ww - e) & (p[:, 1] >= e) & (p[:, 1] < hh - e)
