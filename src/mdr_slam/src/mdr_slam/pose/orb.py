@@ -92,7 +92,6 @@ def expand_ranges(lo: np.ndarray, hi: np.ndarray):
     return owner, start + np.arange(n.sum())
 
 
-
 def _umax(half: int = 15) -> np.ndarray:
     """ORB's circular patch: the largest |u| per row v (cv2 ORB / ORB-SLAM2 ORBextractor)."""
     umax = np.zeros(half + 1, int)
