@@ -938,6 +938,41 @@ def test_weak_proximity_verifications_need_consistent_corrections():
     assert not lc._weak_consistent(SimpleNamespace(id=30, T_wc=np.eye(4)), S)
 
 
+def test_trajectory_spreads_the_next_keyframes_correction_over_the_frames_before_it(sequence):
+    """#6: System.trajectory puts a frame between keyframes a and b on both: when BA (or a loop)
+    moves b, the frames tracked since a follow it in proportion to their time since a, not only
+    a (ORB-SLAM2 keeps them on their reference keyframe, and frame-to-frame drift between two
+    keyframes stays in the trajectory: the simulated garage's blank walls)."""
+    poses, images = sequence
+    s = System(CAM, threads=False)
+    for i in range(14):
+        s.track(0.05 * i, *images[i])
+    tr = s.tracking
+    idx = [k[0] for k in tr.kf_records]
+    n = next(n for n in range(1, len(idx)) if idx[n] - idx[n - 1] >= 2)
+    ia, ib, kb = idx[n - 1], idx[n], tr.kf_records[n][1]
+    stamps = np.array([r[0] for r in tr.records])
+    before = s.trajectory()
+    s.p["trajectory_blend"] = False
+    plain = s.trajectory()
+    s.p["trajectory_blend"] = True
+    delta = np.array([0.05, -0.02, 0.03])
+    T_wc = inv_T(kb.T_cw)
+    T_wc[:3, 3] += delta
+    kb.set_pose(inv_T(T_wc))                 # as BA or a loop correction moves keyframe b
+    after = s.trajectory()
+    moved = after.positions - before.positions
+    np.testing.assert_allclose(after.stamps, stamps)
+    for i in range(ia, ib + 1):
+        w = (stamps[i] - stamps[ia]) / (stamps[ib] - stamps[ia])
+        np.testing.assert_allclose(moved[i], w * delta, atol=1e-9)
+    assert np.abs(moved[:ia]).max(initial=0.0) < 1e-9
+    s.p["trajectory_blend"] = False          # ORB-SLAM2: only b itself moves
+    moved = s.trajectory().positions - plain.positions
+    assert np.abs(moved[ia:ib]).max() < 1e-9 and np.allclose(moved[ib], delta)
+    s.shutdown()
+
+
 def test_config_pose_yaml_and_node_defaults_are_all_known():
     """Every key of config/pose.yaml and of pose_node.DEFAULTS is either a tracker parameter or
     a node-only key (System would refuse the file otherwise, and mdr run / the node with it)."""

@@ -16,7 +16,7 @@ import numpy as np
 
 from . import conversions as cv
 from .camera import CameraModel, StereoCamera
-from .geometry import inv_T
+from .geometry import interpolate_pose, inv_T
 
 DEFAULT_TOPICS = {
     "left_image": "/stereo/left/image_raw",
@@ -101,7 +101,6 @@ class PoseTimeline:
 
     def at(self, t: float, max_gap: float = 0.2) -> Optional[np.ndarray]:
         """Pose at ``t``; None outside the covered time or across a gap larger than ``max_gap``."""
-        from scipy.spatial.transform import Rotation, Slerp
         s = self.stamps
         if len(s) == 0 or t < s[0] - 1e-6 or t > s[-1] + 1e-6:
             return None
@@ -113,12 +112,7 @@ class PoseTimeline:
         if i == 0 or i >= len(s) or s[i] - s[i - 1] > max_gap:
             return None
         a, b = self.Ts[i - 1], self.Ts[i]
-        w = (t - s[i - 1]) / (s[i] - s[i - 1])
-        R = Slerp([0, 1], Rotation.from_matrix([a[:3, :3], b[:3, :3]]))(w).as_matrix()
-        T = np.eye(4)
-        T[:3, :3] = R
-        T[:3, 3] = (1 - w) * a[:3, 3] + w * b[:3, 3]
-        return T
+        return interpolate_pose(a, b, (t - s[i - 1]) / (s[i] - s[i - 1]))
 
 
 def read_ground_truth(bag_path: str, topic: str = DEFAULT_TOPICS["ground_truth"]) -> PoseTimeline:

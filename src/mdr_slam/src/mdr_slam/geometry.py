@@ -61,6 +61,15 @@ def pos_quat_from_T(T: np.ndarray):
     return T[:3, 3].copy(), R_to_quat(T[:3, :3])
 
 
+def interpolate_pose(T0: np.ndarray, T1: np.ndarray, w: float) -> np.ndarray:
+    """Pose a share ``w`` of the way from ``T0`` to ``T1`` (4x4): slerp of the rotations,
+    linear in the translations."""
+    from scipy.spatial.transform import Rotation, Slerp
+    R = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([T0[:3, :3], T1[:3, :3]])))(
+        float(w)).as_matrix()
+    return make_T(R, (1.0 - w) * T0[:3, 3] + w * T1[:3, 3])
+
+
 def is_valid_T(T, tol: float = 1e-3) -> bool:
     """True when ``T`` is a finite rigid transform (orthonormal rotation, det +1)."""
     T = np.asarray(T)

@@ -7,9 +7,8 @@ import bisect
 from typing import List, Optional
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
-from ..geometry import make_T
+from ..geometry import interpolate_pose
 
 __all__ = ["PoseCache"]
 
@@ -60,5 +59,4 @@ class PoseCache:
             return None
         a = (t - t0) / (t1 - t0)
         T0, T1 = self._T[i - 1], self._T[i]
-        rot = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([T0[:3, :3], T1[:3, :3]])))([a])
-        return make_T(rot.as_matrix()[0], (1 - a) * T0[:3, 3] + a * T1[:3, 3])
+        return interpolate_pose(T0, T1, a)

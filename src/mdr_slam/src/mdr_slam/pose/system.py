@@ -18,7 +18,7 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-from ..geometry import inv_T
+from ..geometry import interpolate_pose, inv_T
 from .frame import Frame
 from .local_mapping import LocalMapping
 from .map import Map
@@ -88,6 +88,7 @@ DEFAULT_PARAMS = {
     "shading_cell": 32,          # ... one point per cell of this many px (Tracking.refine_on_one_patch)
     "shading_min_eig": 6e-5,     # ... where the structure tensor's smaller eigenvalue exceeds this
     "shading_weight": 4.0,       # ... their information (1/px^2) in the pose-only optimization (0 spread: off)
+    "trajectory_blend": True,    # trajectory(): frames between two keyframes follow both (System.trajectory)
     "reloc_max_ms": 60.0,
     "yield_max_ms": 60.0,        # threads: mapping waits at most this long for a frame's tracking (0: off)
     "backpressure_inliers": 80,  # threads: wait for LocalMapping when tracking gets this weak
@@ -186,7 +187,6 @@ class System:
             self.local_mapping.start()
             if self.loop_closing is not None:
                 self.loop_closing.start()
-        self._old_records: List[tuple] = []
 
     # ------------------------------------------------------------------ hooks
     def loop_closing_insert(self, kf) -> None:
@@ -269,11 +269,8 @@ class System:
         T_map_cam = None
         if tracked_ok:   # through the reference keyframe: includes a correction made just now
             with self.map.lock:
-                _, kf, T_c_ref, _ = self.tracking.records[-1]
-                while kf.bad and kf.parent is not None:
-                    T_c_ref = T_c_ref @ kf.T_cp
-                    kf = kf.parent
-                T_map_cam = self.T_map_world @ inv_T(T_c_ref @ kf.T_cw)
+                _, kf, T_c_ref, _, _ = self.tracking.records[-1]
+                T_map_cam = self.T_map_world @ inv_T(self._current(T_c_ref, kf))
         return TrackResult(
             stamp=float(stamp), state=state,
             T_map_cam=T_map_cam,
@@ -328,20 +325,49 @@ class System:
 
     def trajectory(self, include_lost: bool = False):
         """Every tracked frame's T_map_cam, recomputed from its reference keyframe's current pose
-        (so BA and loop corrections propagate, as ORB-SLAM2 SaveTrajectoryTUM)."""
+        (so BA and loop corrections propagate, as ORB-SLAM2 SaveTrajectoryTUM) and, between two
+        keyframes, from the next one's too (not in ORB-SLAM2): a frame made after keyframe a and
+        before keyframe b takes the pose through a, weighted (t_b - t) / (t_b - t_a), blended with
+        the pose through b as tracked then, weighted (t - t_a) / (t_b - t_a). Tracking drifts
+        between keyframes (the yaw/step ambiguity of a blank wall's one poster); the corrections
+        BA makes at a and at b are spread over the frames between them, as a pose graph of
+        frame-to-frame edges of equal weight would spread them."""
         from ..io import Trajectory
         stamps, Ts = [], []
         with self.map.lock:
-            for stamp, kf, T_c_ref, lost in self._old_records + self.tracking.records:
+            recs = self.tracking.records
+            kfr = self.tracking.kf_records
+            kf_idx = np.array([k[0] for k in kfr], np.int64)
+            for i, (stamp, kf, T_c_ref, lost, T_online) in enumerate(recs):
                 if lost or kf is None:
                     continue
-                T = T_c_ref
-                while kf.bad and kf.parent is not None:
-                    T = T @ kf.T_cp
-                    kf = kf.parent
+                T_cw = self._current(T_c_ref, kf)
+                n = int(np.searchsorted(kf_idx, i, side="right"))   # kfr[n]: the next keyframe
+                if self.p["trajectory_blend"] and 0 < n < len(kfr):
+                    ia = kf_idx[n - 1]
+                    ib, kb, ref_b, T_b_ref = kfr[n]
+                    # this frame relative to keyframe b as tracked: through their common
+                    # reference keyframe when they share one (BA may move it in between)
+                    if ref_b is kf:
+                        T_c_b = T_c_ref @ inv_T(T_b_ref)
+                    else:
+                        T_c_b = T_online @ inv_T(recs[ib][4])
+                    w = (stamp - recs[ia][0]) / max(1e-9, recs[ib][0] - recs[ia][0])
+                    T_cw = inv_T(interpolate_pose(inv_T(T_cw), inv_T(self._current(T_c_b, kb)),
+                                                  float(np.clip(w, 0.0, 1.0))))
                 stamps.append(stamp)
-                Ts.append(self.T_map_world @ inv_T(T @ kf.T_cw))
+                Ts.append(self.T_map_world @ inv_T(T_cw))
         return Trajectory.from_matrices(stamps, np.array(Ts).reshape(-1, 4, 4))
+
+    @staticmethod
+    def _current(T_c_kf: np.ndarray, kf) -> np.ndarray:
+        """T_cw of a pose given relative to ``kf``, at kf's current pose (through its surviving
+        ancestor when it was culled)."""
+        T = T_c_kf
+        while kf.bad and kf.parent is not None:
+            T = T @ kf.T_cp
+            kf = kf.parent
+        return T @ kf.T_cw
 
     def reset(self) -> None:
         """Start a new map (ORB-SLAM2 Reset after losing track right after initialisation).

@@ -65,8 +65,11 @@ class Tracking:
         self.n_matches_inliers = 0
         self.n_local_points = 0
         self.lock_wait_ms = 0.0
-        # per-frame record for the trajectory: (stamp, ref kf, T_c_ref, lost)
+        # per-frame record for the trajectory: (stamp, ref kf, T_c_ref, lost, T_cw as tracked)
         self.records: List[tuple] = []
+        # (index in records, keyframe, reference keyframe before it, T_c_ref to that) of every
+        # keyframe made from a tracked frame
+        self.kf_records: List[tuple] = []
 
     # ------------------------------------------------------------------ entry
     def track(self, frame: Frame) -> dict:
@@ -82,6 +85,8 @@ class Tracking:
                     self.state = OK
                     out.update(is_keyframe=True, keyframe_id=self.ref_kf.id)
                 self._record(frame, self.state == OK)
+                if out["is_keyframe"]:
+                    self.kf_records.append((len(self.records) - 1, self.ref_kf, None, None))
                 self.last_frame = frame
                 return out
             self._check_ref_kf()
@@ -133,6 +138,10 @@ class Tracking:
                 if len(mp.good_keyframes()) <= self.p["reset_if_lost_below_kfs"]:
                     self.system.request_reset = True
             self._record(frame, ok)
+            if out["is_keyframe"]:
+                kf, ref = self.ref_kf, self.ref_kf.parent
+                self.kf_records.append((len(self.records) - 1, kf, ref, None if ref is None else
+                                        frame.T_cw @ inv_T(ref.T_cw)))
             if ok:
                 self.last_frame = frame
         return out
@@ -140,9 +149,9 @@ class Tracking:
     def _record(self, frame: Frame, ok: bool) -> None:
         if ok and self.ref_kf is not None:
             T_c_ref = frame.T_cw @ inv_T(self.ref_kf.T_cw)
-            self.records.append((frame.stamp, self.ref_kf, T_c_ref, False))
+            self.records.append((frame.stamp, self.ref_kf, T_c_ref, False, frame.T_cw.copy()))
         else:
-            self.records.append((frame.stamp, None, None, True))
+            self.records.append((frame.stamp, None, None, True, None))
 
     def _check_ref_kf(self) -> None:
         while self.ref_kf is not None and self.ref_kf.bad and self.ref_kf.parent is not None:
