@@ -61,13 +61,24 @@ def pos_quat_from_T(T: np.ndarray):
     return T[:3, 3].copy(), R_to_quat(T[:3, :3])
 
 
+def interpolate_poses(T0: np.ndarray, T1: np.ndarray, w) -> np.ndarray:
+    """Poses a share ``w`` (n,) of the way from ``T0`` to ``T1`` (n, 4, 4): rotations along the
+    geodesic (slerp), translations linear."""
+    from scipy.spatial.transform import Rotation
+    T0, T1 = np.asarray(T0, float).reshape(-1, 4, 4), np.asarray(T1, float).reshape(-1, 4, 4)
+    w = np.broadcast_to(np.asarray(w, float), (len(T0),))
+    R0 = Rotation.from_matrix(T0[:, :3, :3])
+    rel = (R0.inv() * Rotation.from_matrix(T1[:, :3, :3])).as_rotvec()
+    out = np.zeros_like(T0)
+    out[:, :3, :3] = (R0 * Rotation.from_rotvec(rel * w[:, None])).as_matrix()
+    out[:, :3, 3] = (1.0 - w)[:, None] * T0[:, :3, 3] + w[:, None] * T1[:, :3, 3]
+    out[:, 3, 3] = 1.0
+    return out
+
+
 def interpolate_pose(T0: np.ndarray, T1: np.ndarray, w: float) -> np.ndarray:
-    """Pose a share ``w`` of the way from ``T0`` to ``T1`` (4x4): slerp of the rotations,
-    linear in the translations."""
-    from scipy.spatial.transform import Rotation, Slerp
-    R = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([T0[:3, :3], T1[:3, :3]])))(
-        float(w)).as_matrix()
-    return make_T(R, (1.0 - w) * T0[:3, 3] + w * T1[:3, 3])
+    """Pose a share ``w`` of the way from ``T0`` to ``T1`` (4x4): :func:`interpolate_poses`."""
+    return interpolate_poses(T0, T1, w)[0]
 
 
 def is_valid_T(T, tol: float = 1e-3) -> bool:

@@ -18,7 +18,7 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-from ..geometry import interpolate_pose, inv_T
+from ..geometry import interpolate_poses, inv_T
 from .frame import Frame
 from .local_mapping import LocalMapping
 from .map import Map
@@ -333,7 +333,7 @@ class System:
         BA makes at a and at b are spread over the frames between them, as a pose graph of
         frame-to-frame edges of equal weight would spread them."""
         from ..io import Trajectory
-        stamps, Ts = [], []
+        stamps, Ts, blend = [], [], []   # blend: (index in Ts, T_cw through b, weight of b)
         with self.map.lock:
             recs = self.tracking.records
             kfr = self.tracking.kf_records
@@ -341,7 +341,8 @@ class System:
             for i, (stamp, kf, T_c_ref, lost, T_online) in enumerate(recs):
                 if lost or kf is None:
                     continue
-                T_cw = self._current(T_c_ref, kf)
+                stamps.append(stamp)
+                Ts.append(self._current(T_c_ref, kf))
                 n = int(np.searchsorted(kf_idx, i, side="right"))   # kfr[n]: the next keyframe
                 if self.p["trajectory_blend"] and 0 < n < len(kfr):
                     ia = kf_idx[n - 1]
@@ -353,11 +354,13 @@ class System:
                     else:
                         T_c_b = T_online @ inv_T(recs[ib][4])
                     w = (stamp - recs[ia][0]) / max(1e-9, recs[ib][0] - recs[ia][0])
-                    T_cw = inv_T(interpolate_pose(inv_T(T_cw), inv_T(self._current(T_c_b, kb)),
-                                                  float(np.clip(w, 0.0, 1.0))))
-                stamps.append(stamp)
-                Ts.append(self.T_map_world @ inv_T(T_cw))
-        return Trajectory.from_matrices(stamps, np.array(Ts).reshape(-1, 4, 4))
+                    blend.append((len(Ts) - 1, self._current(T_c_b, kb), float(np.clip(w, 0, 1))))
+        T_wc = np.linalg.inv(np.array(Ts).reshape(-1, 4, 4))
+        if blend:
+            j = np.array([b[0] for b in blend])
+            T_wc[j] = interpolate_poses(T_wc[j], np.linalg.inv(np.array([b[1] for b in blend])),
+                                        np.array([b[2] for b in blend]))
+        return Trajectory.from_matrices(stamps, np.einsum("ij,njk->nik", self.T_map_world, T_wc))
 
     @staticmethod
     def _current(T_c_kf: np.ndarray, kf) -> np.ndarray:
