@@ -916,6 +916,50 @@ def test_proximity_refuses_a_false_candidate(orbit_proximity_run):
         cand.set_pose(T0)
 
 
+def test_proximity_needs_both_sides_to_agree(orbit_proximity_run, monkeypatch):
+    """#6: when the candidate's own keypoints tracked into kf give a pose too, it must agree
+    with kf's (``loop_proximity_two_way_deg`` / ``_m``); a verification from one side whose
+    other side disagrees by 5 deg is refused and recorded; no pose from cand's side leaves the
+    verification to kf's side alone."""
+    from mdr_slam.pose.loop_closing import LoopClosing
+    s = orbit_proximity_run
+    lc, mp = s.loop_closing, s.map
+    k, c, _ = lc.proximity_loops[0]
+    kf, cand = mp.keyframes[k], mp.keyframes[c]
+    lc._exclude = {kf.id}
+    shift = {x[1]: x for x in lc.proximity_candidates(kf)}[c][2]
+    good = lc.verify_proximity(kf, cand, shift)
+    assert good is not None
+    orig = LoopClosing._lk_pnp
+
+    def other_side(turn_deg, none=False):
+        # cand's side stands in as kf's side inverted (the orbit's keyframe 0 keeps too few
+        # tracks into kf for a pose of its own), turned by turn_deg about the camera's y axis
+        def f(self, src, dst, sh, m):
+            if src is kf:
+                return orig(self, src, dst, sh, m)
+            r = orig(self, kf, cand, (-sh[0], -sh[1]), m)
+            return None if none or r is None else (
+                make_T(Rotation.from_euler("y", turn_deg, degrees=True).as_matrix(),
+                       [0.0, 0.0, 0.0]) @ inv_T(r[0]), r[1], r[2])
+        return f
+    n0 = len(lc.one_way)
+    monkeypatch.setattr(LoopClosing, "_lk_pnp", other_side(5.0))
+    assert lc.verify_proximity(kf, cand, shift) is None
+    assert len(lc.one_way) == n0 + 1 and 4.9 < lc.one_way[-1][3] < 5.1
+    monkeypatch.setattr(LoopClosing, "_lk_pnp", other_side(1.0))   # within 2 deg
+    agree = lc.verify_proximity(kf, cand, shift)
+    assert agree is not None and np.allclose(agree[0], good[0]) and len(lc.one_way) == n0 + 1
+    monkeypatch.setattr(LoopClosing, "_lk_pnp", other_side(0.0, none=True))
+    assert lc.verify_proximity(kf, cand, shift) is not None
+    lc.p["loop_proximity_two_way"] = False
+    try:
+        monkeypatch.setattr(LoopClosing, "_lk_pnp", other_side(5.0))
+        assert lc.verify_proximity(kf, cand, shift) is not None
+    finally:
+        lc.p["loop_proximity_two_way"] = True
+
+
 def test_weak_proximity_verifications_need_consistent_corrections():
     """#6: a proximity verification with few inliers (blank wall) counts only when the loop
     corrections of the previous keyframes' weak verifications agree with it."""
