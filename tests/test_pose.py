@@ -153,6 +153,60 @@ def test_pose_optimization_with_outliers():
     assert np.mean(f.outlier[outl & (np.abs(f.uv - np.column_stack([u, v])).max(1) > 10)]) > 0.9
 
 
+def test_gradient_energy_measures_each_axis():
+    """A horizontal edge pins a point along y only, a vertical one along x only, a flat noisy
+    patch along neither (its energy is the noise's, sigma^2 / 2 for central differences)."""
+    from mdr_slam.pose.frame import gradient_energy
+    rng = np.random.RandomState(0)
+    img = np.full((120, 160), 100.0)
+    img[60:, :80] = 160.0          # left half: a horizontal edge at row 60
+    img[:, 120:] = 40.0            # right: a vertical edge at column 120
+    img = np.clip(img + rng.randn(*img.shape) * 2.0, 0, 255).astype(np.uint8)
+    E = gradient_energy(img, np.array([[40.0, 60.0], [120.0, 30.0], [100.0, 20.0]]))
+    (hx, hy), (vx, vy), (fx_, fy_) = E
+    assert hy > 100 and hx < 5
+    assert vx > 100 and vy < 5
+    assert fx_ < 5 and fy_ < 5 and 1.0 < fx_ and 1.0 < fy_
+
+
+def test_pose_optimization_weighs_each_axis_by_texture():
+    """#6 (seed 7 of office_loop_rotation): keypoints on horizontal edges have u and u_R that are
+    noise. With texture weights their x residuals count for little and the pose comes from the
+    well-textured minority; weighted alike, they pull it off."""
+    rng = np.random.RandomState(4)
+    Pw = _synthetic_points(rng)
+    n = len(Pw)
+    T_true = inv_T(make_T(Rotation.from_rotvec([0.01, 0.08, 0.0]).as_matrix(), [0.2, 0.0, 0.3]))
+    Pc = Pw @ T_true[:3, :3].T + T_true[:3, 3]
+    u = CAM.fx * Pc[:, 0] / Pc[:, 2] + CAM.cx
+    v = CAM.fy * Pc[:, 1] / Pc[:, 2] + CAM.cy
+    ur = u - CAM.fx * CAM.baseline / Pc[:, 2]
+    edge = np.arange(n) >= 60     # 85 % on edges: x off by a common 2.5 px (a sliding patch)
+    xs = np.where(edge, 2.5 + rng.randn(n) * 0.5, rng.randn(n) * 0.3)
+    errs = []
+    for tex in (None, np.column_stack([np.where(edge, 0.02, 1.0), np.ones(n)])):
+        class F:
+            pass
+        f = F()
+        f.fx, f.fy, f.cx, f.cy, f.bf = CAM.fx, CAM.fy, CAM.cx, CAM.cy, CAM.fx * CAM.baseline
+        f.uv = np.column_stack([u + xs, v + rng.randn(n) * 0.3])
+        f.ur = ur + xs
+        f.octave = np.zeros(n, int)
+        f.inv_level_sigma2 = np.ones(8)
+        f.mp_ids = np.arange(n)
+        f.outlier = np.zeros(n, bool)
+        f.T_cw = T_true.copy()
+        if tex is not None:
+            f.texture_weights = lambda idx, t=tex: t[idx]
+        mp = Map()
+        mp.mp_pos, mp.mp_bad, mp.n = np.asarray(Pw, float), np.zeros(n, bool), n
+        Optimizer.pose_optimization(f, mp)
+        D = inv_T(T_true) @ f.T_cw
+        errs.append((np.linalg.norm(D[:3, 3]), np.degrees(Rotation.from_matrix(D[:3, :3]).magnitude())))
+    (t0, r0), (t1, r1) = errs
+    assert r0 > 0.2 and t1 < 0.5 * t0 and r1 < 0.5 * r0, errs
+
+
 def test_bundle_adjust_recovers_structure_and_motion():
     rng = np.random.RandomState(2)
     P = _synthetic_points(rng, 300)
@@ -176,6 +230,36 @@ def test_bundle_adjust_recovers_structure_and_motion():
     for c in range(5):
         assert np.linalg.norm(inv_T(Tr[c])[:3, 3] - inv_T(Ts[c])[:3, 3]) < 1e-6
     assert np.abs(Pr - P).max() < 1e-6
+
+
+def test_bundle_adjust_weighs_rows_by_texture():
+    """BA with texture row weights: 85 % of the points sit on horizontal edges, their u and u_R
+    in cameras 1-4 off by 1.5 px more in each (the patch slides along the edge as the view moves);
+    weighted alike they move the cameras, with their x rows weighted down (``row_w``) the poses
+    come from the textured rest."""
+    rng = np.random.RandomState(5)
+    P = _synthetic_points(rng, 300)
+    Ts = np.array([inv_T(make_T(Rotation.from_rotvec([0, 0.03 * c, 0]).as_matrix(),
+                                [0.3 * c, 0, 0.2 * c])) for c in range(5)])
+    ci = np.repeat(np.arange(5), len(P))
+    pi = np.tile(np.arange(len(P)), 5)
+    Pc = (Ts[ci, :3, :3] @ P[pi][:, :, None])[:, :, 0] + Ts[ci, :3, 3]
+    bf = CAM.fx * CAM.baseline
+    edge = pi >= 45
+    slide = np.where(edge, 1.5 * ci + rng.randn(len(ci)) * 0.3, rng.randn(len(ci)) * 0.2)
+    u = CAM.fx * Pc[:, 0] / Pc[:, 2] + CAM.cx + slide
+    v = CAM.fy * Pc[:, 1] / Pc[:, 2] + CAM.cy + rng.randn(len(ci)) * 0.2
+    stereo = np.ones(len(u), bool)
+    obs = np.column_stack([u, v, u - bf / Pc[:, 2]])
+    fixed = np.array([True, False, False, False, False])
+    wx = np.where(edge, 0.001, 1.0)
+    errs = []
+    for row_w in (None, np.column_stack([wx, np.ones(len(u)), wx])):
+        Tr, _ = bundle_adjust(Ts.copy(), fixed, P.copy(), ci, pi, obs, stereo, np.ones(len(u)),
+                              (CAM.fx, CAM.fy, CAM.cx, CAM.cy, bf), 10, row_w=row_w)
+        errs.append(max(np.linalg.norm(inv_T(Tr[c])[:3, 3] - inv_T(Ts[c])[:3, 3])
+                        for c in range(5)))
+    assert errs[0] > 0.02 and errs[1] < 0.5 * errs[0], errs   # measured 0.036 / 0.011 m
 
 
 def _run(images, threads=False, params=None):

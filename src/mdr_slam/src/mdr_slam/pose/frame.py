@@ -161,6 +161,25 @@ def compute_stereo_matches(left: np.ndarray, right: np.ndarray, uv_l, oct_l, des
     return ur, depth
 
 
+def gradient_energy(image: np.ndarray, uv: np.ndarray, half: int = 3) -> np.ndarray:
+    """(n, 2) mean squared central-difference gradients along x and y over the (2 half + 1)^2
+    window around each point (grey levels^2): how well the patch pins the point along each axis
+    (a horizontal edge: y large, x at the noise level)."""
+    H, W = image.shape[:2]
+    n = len(uv)
+    if n == 0:
+        return np.zeros((0, 2), np.float32)
+    u = np.clip(np.rint(uv[:, 0]).astype(np.int64), half + 1, W - half - 2)
+    v = np.clip(np.rint(uv[:, 1]).astype(np.int64), half + 1, H - half - 2)
+    offs = np.arange(-half, half + 1)
+    rows = v[:, None, None] + offs[None, :, None]
+    cols = u[:, None, None] + offs[None, None, :]
+    img = image.astype(np.float32) if image.dtype != np.float32 else image
+    gx = (img[rows, cols + 1] - img[rows, cols - 1]) * 0.5
+    gy = (img[rows + 1, cols] - img[rows - 1, cols]) * 0.5
+    return np.stack([np.mean(gx * gx, axis=(1, 2)), np.mean(gy * gy, axis=(1, 2))], axis=1)
+
+
 class FeatureGrid:
     """Keypoints bucketed in square cells (ORB-SLAM2's Frame::mGrid and GetFeaturesInArea),
     answering every (projection, keypoint) pair within a per-projection radius at once.
@@ -270,6 +289,8 @@ class Frame:
         self.ref_kf = None
         self._grid = None
         self.build_ms = self.build_cpu_ms = 0.0   # wall and CPU time of making it (System.make_frame)
+        self.texture_tau = 0.0   # > 0: per-axis keypoint weights (texture_weights)
+        self._tex_w = None
 
     # --- the keypoint grid: radius queries for all projections at once
     @property
@@ -298,6 +319,17 @@ class Frame:
         self.N += n
         self._grid = None
         return idx
+
+    def texture_weights(self, idx: np.ndarray):
+        """(len(idx), 2) weights of keypoints' x (u and u_R) and y residuals: the gradient
+        energy of their patch along that axis over ``texture_tau``, at most 1; None when off."""
+        if self.texture_tau <= 0.0:
+            return None
+        if self._tex_w is None or len(self._tex_w) < self.N:
+            done = 0 if self._tex_w is None else len(self._tex_w)
+            new = np.minimum(gradient_energy(self.image, self.uv[done:]) / self.texture_tau, 1.0)
+            self._tex_w = new if self._tex_w is None else np.concatenate([self._tex_w, new])
+        return self._tex_w[idx]
 
     @property
     def T_wc(self) -> np.ndarray:

@@ -43,6 +43,9 @@ class KeyFrame:
         self._tree = None
         self._grid = None
         self.mp_ids = frame.mp_ids.copy()
+        # per-axis texture weights of the keypoints (Frame.texture_weights), for the BAs
+        self.tex_w = frame.texture_weights(np.arange(frame.N)) \
+            if getattr(frame, "texture_tau", 0.0) > 0.0 else None
         self.T_cw = frame.T_cw.copy()
         self.bad = False
         self.parent: Optional["KeyFrame"] = None      # spanning tree (highest covisibility)

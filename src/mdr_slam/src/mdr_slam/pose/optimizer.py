@@ -107,7 +107,7 @@ def _huber_cost(e, info, delta, active):
 def bundle_adjust(Ts: np.ndarray, fixed: np.ndarray, P: np.ndarray, cam_idx: np.ndarray,
                   pt_idx: np.ndarray, obs: np.ndarray, stereo: np.ndarray, info: np.ndarray,
                   intr, iterations: int = 10, lm_lambda: float = 1e-3, abort=None,
-                  tol: float = 0.0):
+                  tol: float = 0.0, row_w: Optional[np.ndarray] = None):
     """Robust (Huber) Levenberg-Marquardt bundle adjustment with the Schur complement.
 
     Poses ``Ts`` (C, 4, 4) T_cw (``fixed`` ones held), points ``P`` (M, 3); observations (u, v, uR)
@@ -117,14 +117,16 @@ def bundle_adjust(Ts: np.ndarray, fixed: np.ndarray, P: np.ndarray, cam_idx: np.
     Half the iterations run, outliers (chi2 above 95 %) are dropped, the rest run again. With
     ``tol`` > 0 a round ends early once a step lowers the robust cost by less than ``tol`` times
     its value (converged: the remaining iterations would move nothing that matters).
+    ``row_w`` (n, 3): weights of each observation's u, v and u_R rows in the cost (texture
+    weights, :meth:`Frame.texture_weights`); the outlier test stays on the plain chi2.
     """
     Ts, P, _, _ = _robust_lm(Ts, fixed, P, cam_idx, pt_idx, obs, stereo, info, intr, iterations,
-                             lm_lambda, abort, tol, sparse=False)
+                             lm_lambda, abort, tol, sparse=False, row_w=row_w)
     return Ts, P
 
 
 def _robust_lm(Ts, fixed, P, cam_idx, pt_idx, obs, stereo, info, intr, iterations, lm_lambda,
-               abort, tol, sparse):
+               abort, tol, sparse, row_w=None):
     """The LM loop of :func:`bundle_adjust` and :func:`bundle_adjust_sparse`: W (6 C x 3 M) as a
     dense array (few cameras: one BLAS product) or as scipy.sparse (many cameras). Returns
     (Ts, P, active observations, residuals at the result)."""
@@ -144,8 +146,10 @@ def _robust_lm(Ts, fixed, P, cam_idx, pt_idx, obs, stereo, info, intr, iteration
     def residuals(Ts_, P_):
         return _ba_residuals(Ts_, P_, cam_idx, pt_idx, obs, stereo, intr)
 
+    sq = None if row_w is None else np.sqrt(np.asarray(row_w, dtype=float))
+
     def robust_cost(e):
-        return _huber_cost(e, info, delta, active)
+        return _huber_cost(e if sq is None else e * sq, info, delta, active)
 
     lam = lm_lambda
     half = max(1, iterations // 2)
@@ -168,12 +172,16 @@ def _robust_lm(Ts, fixed, P, cam_idx, pt_idx, obs, stereo, info, intr, iteration
             break   # a new keyframe is waiting (ORB-SLAM2 mbAbortBA): keep the steps taken so far
         e, Pc, R = cur
         if it == half:   # ORB-SLAM2: optimise, drop outliers, optimise again
-            _, chi2 = robust_cost(e)
+            _, chi2 = _huber_cost(e, info, delta, active)
             active &= (chi2 <= chi2_th) & (Pc[:, 2] > 0)
         cost, chi2 = robust_cost(e)
         s = np.sqrt(np.maximum(chi2, 1e-12))
         w = info * np.where(s > delta, delta / s, 1.0) * active
         Jc, Jl = _pose_point_jacobians(Pc, R, stereo, fx, fy, bf)
+        if sq is not None:   # weighted rows: residuals and Jacobians scaled by sqrt(row_w)
+            e = e * sq
+            Jc = Jc * sq[:, :, None]
+            Jl = Jl * sq[:, :, None]
         # point blocks (bincount on flattened block indices: much faster than np.add.at)
         JlT = Jl.transpose(0, 2, 1) * w[:, None, None]
         Hpp = _block_sum(pt_idx, JlT @ Jl, M)
@@ -239,6 +247,16 @@ def _robust_lm(Ts, fixed, P, cam_idx, pt_idx, obs, stereo, info, intr, iteration
             break
         it += 1
     return Ts, P, active, cur
+
+
+def texture_row_weights(obs_list) -> Optional[np.ndarray]:
+    """(n, 3) u, v, u_R row weights of BA observations [(keyframe, keypoint index, ...)] from the
+    keyframes' texture weights (x for u and u_R, y for v); None when no keyframe has them."""
+    if not any(getattr(k, "tex_w", None) is not None for k, *_ in obs_list):
+        return None
+    w = np.concatenate([k.tex_w[sel] if getattr(k, "tex_w", None) is not None
+                        else np.ones((len(sel), 2)) for k, sel, *_ in obs_list])
+    return np.column_stack([w[:, 0], w[:, 1], w[:, 0]])
 
 
 def _block_sum(idx: np.ndarray, vals: np.ndarray, n: int) -> np.ndarray:
@@ -419,6 +437,8 @@ class Optimizer:
         ov = frame.uv[idx, 1].astype(float)
         our = np.where(stereo, frame.ur[idx], 0.0).astype(float)
         info = frame.inv_level_sigma2[frame.octave[idx]].astype(float)
+        tex = frame.texture_weights(idx) if hasattr(frame, "texture_weights") else None
+        wx, wy = (1.0, 1.0) if tex is None else (tex[:, 0], tex[:, 1])
         chi2_th = np.where(stereo, CHI2_STEREO, CHI2_MONO)
         delta = np.sqrt(chi2_th)
         T = frame.T_cw.copy()
@@ -483,9 +503,9 @@ class Optimizer:
                     np.multiply(Ju[3] - b2 * Y, st, out=Jr[3])
                     np.multiply(Ju[4] + b2 * X, st, out=Jr[4])
                     np.multiply(Ju[5], st, out=Jr[5])
-                w3[:n] = w
-                w3[n:2 * n] = w
-                w3[2 * n:] = w
+                w3[:n] = w * wx
+                w3[n:2 * n] = w * wy
+                w3[2 * n:] = w * wx
                 Jw = J * w3
                 H = Jw @ J.T
                 g = Jw @ e
@@ -583,13 +603,14 @@ class Optimizer:
         stereo = urr >= 0
         obs = np.column_stack([uv, np.where(stereo, urr, 0.0)])
         info = np.concatenate([k.inv_level_sigma2[k.octave[sel]] for k, sel, _ in obs_list])
+        row_w = texture_row_weights(obs_list)
         K0 = kf
         ba_args = (Ts, fixed_mask, pos, cam_idx, pt_idx, obs, stereo, info,
                    (K0.fx, K0.fy, K0.cx, K0.cy, K0.bf), iterations)
         if worker is not None:
-            Ts_new, pos_new = worker.run(ba_args, {"tol": tol}, abort=abort)
+            Ts_new, pos_new = worker.run(ba_args, {"tol": tol, "row_w": row_w}, abort=abort)
         else:
-            Ts_new, pos_new = bundle_adjust(*ba_args, abort=abort, tol=tol)
+            Ts_new, pos_new = bundle_adjust(*ba_args, abort=abort, tol=tol, row_w=row_w)
         new_pos = pos_new
         new_T = {k.id: inv_T(Ts_new[c]) for c, k in enumerate(kfs)
                  if not fixed_mask[c] and k in local}
@@ -662,14 +683,15 @@ class Optimizer:
 def bundle_adjust_sparse(Ts: np.ndarray, fixed: np.ndarray, P: np.ndarray, cam_idx: np.ndarray,
                          pt_idx: np.ndarray, obs: np.ndarray, stereo: np.ndarray,
                          info: np.ndarray, intr, iterations: int = 10, lm_lambda: float = 1e-3,
-                         abort=None):
+                         abort=None, row_w: Optional[np.ndarray] = None):
     """:func:`bundle_adjust` for many cameras (global BA): the same robust LM with the Schur
     complement and the same outlier rounds, but the (6 C x 3 M) camera-point block matrix W is a
     scipy.sparse matrix, so memory grows with the observations instead of cameras x points (the
     dense W of the local solver would be gigabytes for a whole map). Returns (Ts, P, inlier mask
     of the observations after the last outlier round)."""
     Ts, P, active, (e, Pc, _) = _robust_lm(Ts, fixed, P, cam_idx, pt_idx, obs, stereo, info,
-                                           intr, iterations, lm_lambda, abort, 0.0, sparse=True)
+                                           intr, iterations, lm_lambda, abort, 0.0, sparse=True,
+                                           row_w=row_w)
     chi2_th = np.where(stereo, CHI2_STEREO, CHI2_MONO)
     _, chi2 = _huber_cost(e, info, np.sqrt(chi2_th), active)
     inlier = active & (chi2 <= chi2_th) & (Pc[:, 2] > 0)
@@ -728,9 +750,11 @@ def global_bundle_adjustment(map_, iterations: int = 10, fixed_id: Optional[int]
         lookup = np.full(n_pts, -1, dtype=np.int64)
         lookup[pts] = np.arange(len(pts))
         cam_l, pt_l, uv_l, ur_l, inf_l, kp_l = [], [], [], [], [], []
+        used = []
         for c, (k, sel, ids) in enumerate(obs_list):
             m = lookup[ids] >= 0
             sel, ids = sel[m], ids[m]
+            used.append((k, sel, ids))
             cam_l.append(np.full(len(sel), c))
             pt_l.append(lookup[ids])
             uv_l.append(k.uv[sel])
@@ -742,6 +766,7 @@ def global_bundle_adjustment(map_, iterations: int = 10, fixed_id: Optional[int]
         P0 = map_.mp_pos[pts].copy()
         K0 = kfs[0]
         intr = (K0.fx, K0.fy, K0.cx, K0.cy, K0.bf)
+        row_w = texture_row_weights(used)
     if len(pts) == 0:
         return {"moved": [], "outliers": 0, "keyframes": len(kfs), "points": 0}
     cam_idx = np.concatenate(cam_l)
@@ -756,9 +781,9 @@ def global_bundle_adjustment(map_, iterations: int = 10, fixed_id: Optional[int]
     def solve():
         args = (Ts, fixed, P0, cam_idx, pt_idx, obs, stereo, info, intr)
         if worker is not None:
-            return worker.run(args, {"iterations": iterations}, abort=abort,
+            return worker.run(args, {"iterations": iterations, "row_w": row_w}, abort=abort,
                               solver="bundle_adjust_sparse")
-        return bundle_adjust_sparse(*args, iterations=iterations, abort=abort)
+        return bundle_adjust_sparse(*args, iterations=iterations, abort=abort, row_w=row_w)
     if lock_solve:
         with map_.lock:
             Ts_new, P_new, inlier = solve()

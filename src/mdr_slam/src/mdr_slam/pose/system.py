@@ -75,6 +75,7 @@ DEFAULT_PARAMS = {
     "loop_proximity_min_inliers": 40,   # PnP inliers of the LK tracks (and >= 60 % of them)
     "loop_proximity_weak_inliers": 15,  # > 0: fewer inliers (down to this) when consistent ...
     "loop_proximity_weak_consistency": 2,  # ... with this many previous weak verifications
+    "texture_tau": 10.0,         # a keypoint's x (u, u_R) and y residuals weigh min(1, gradient energy / tau)
     "loop_proximity_two_way": True,     # cand's keypoints tracked into kf too: the two poses must agree ...
     "loop_proximity_two_way_deg": 2.0,  # ... within this rotation ...
     "loop_proximity_two_way_m": 0.5,    # ... and translation (m)
@@ -226,6 +227,7 @@ class System:
         frame = Frame(stamp, left_rect, right_rect, self.camera, self.extractor,
                       self.extractor_right, th_depth_factor=self.p["th_depth"])
         frame.n_primary = getattr(self.extractor, "n_primary", frame.N)   # low-texture test
+        frame.texture_tau = float(self.p["texture_tau"])
         frame.build_ms = 1000.0 * (time.perf_counter() - t0)
         frame.build_cpu_ms = 1000.0 * (time.thread_time() - c0)   # the right image's thread excluded
         return frame
