@@ -207,15 +207,21 @@ def test_pose_optimization_weighs_each_axis_by_texture():
     assert r0 > 0.2 and t1 < 0.5 * t0 and r1 < 0.5 * r0, errs
 
 
-def test_bundle_adjust_recovers_structure_and_motion():
-    rng = np.random.RandomState(2)
+def _ba_scene(rng):
+    """300 points seen by 5 cameras turning and moving together: (P, Ts, camera and point index
+    per observation, the points in those cameras, bf)."""
     P = _synthetic_points(rng, 300)
     Ts = np.array([inv_T(make_T(Rotation.from_rotvec([0, 0.03 * c, 0]).as_matrix(),
                                 [0.3 * c, 0, 0.2 * c])) for c in range(5)])
     ci = np.repeat(np.arange(5), len(P))
     pi = np.tile(np.arange(len(P)), 5)
     Pc = (Ts[ci, :3, :3] @ P[pi][:, :, None])[:, :, 0] + Ts[ci, :3, 3]
-    bf = CAM.fx * CAM.baseline
+    return P, Ts, ci, pi, Pc, CAM.fx * CAM.baseline
+
+
+def test_bundle_adjust_recovers_structure_and_motion():
+    rng = np.random.RandomState(2)
+    P, Ts, ci, pi, Pc, bf = _ba_scene(rng)
     u = CAM.fx * Pc[:, 0] / Pc[:, 2] + CAM.cx
     v = CAM.fy * Pc[:, 1] / Pc[:, 2] + CAM.cy
     stereo = rng.rand(len(u)) < 0.5
@@ -238,13 +244,7 @@ def test_bundle_adjust_weighs_rows_by_texture():
     weighted alike they move the cameras, with their x rows weighted down (``row_w``) the poses
     come from the textured rest."""
     rng = np.random.RandomState(5)
-    P = _synthetic_points(rng, 300)
-    Ts = np.array([inv_T(make_T(Rotation.from_rotvec([0, 0.03 * c, 0]).as_matrix(),
-                                [0.3 * c, 0, 0.2 * c])) for c in range(5)])
-    ci = np.repeat(np.arange(5), len(P))
-    pi = np.tile(np.arange(len(P)), 5)
-    Pc = (Ts[ci, :3, :3] @ P[pi][:, :, None])[:, :, 0] + Ts[ci, :3, 3]
-    bf = CAM.fx * CAM.baseline
+    P, Ts, ci, pi, Pc, bf = _ba_scene(rng)
     edge = pi >= 45
     slide = np.where(edge, 1.5 * ci + rng.randn(len(ci)) * 0.3, rng.randn(len(ci)) * 0.2)
     u = CAM.fx * Pc[:, 0] / Pc[:, 2] + CAM.cx + slide
