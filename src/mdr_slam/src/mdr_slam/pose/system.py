@@ -75,7 +75,6 @@ DEFAULT_PARAMS = {
     "loop_proximity_min_inliers": 40,   # PnP inliers of the LK tracks (and >= 60 % of them)
     "loop_proximity_weak_inliers": 15,  # > 0: fewer inliers (down to this) when consistent ...
     "loop_proximity_weak_consistency": 2,  # ... with this many previous weak verifications
-    "texture_tau": 10.0,         # a keypoint's x (u, u_R) and y residuals weigh min(1, gradient energy / tau)
     "loop_proximity_two_way": True,     # cand's keypoints tracked into kf too: the two poses must agree ...
     "loop_proximity_two_way_deg": 2.0,  # ... within this rotation ...
     "loop_proximity_two_way_m": 0.5,    # ... and translation (m)
@@ -87,6 +86,7 @@ DEFAULT_PARAMS = {
     "lost_coast_s": 0.5,         # LOST: motion-model tracking from the last tracked frame goes on this long
     "motion_prior_acc": 4.0,     # pose-only optimization pulled toward the constant-velocity prediction:
     "motion_prior_ang_acc": 120.0, # sigmas acc * dt^2 (m/s^2) and ang_acc * dt^2 (deg/s^2) (0: off)
+    "texture_tau": 10.0,         # a keypoint's x (u, u_R) and y residuals weigh min(1, gradient energy / tau)
     "shading_max_spread": 0.3,   # inliers spanning less of the image width: the last frame's shading joins
     "shading_max_close": 0.2,    # ... and at most this share of them is within th_depth (a far view)
     "shading_cell": 32,          # ... one point per cell of this many px (Tracking.refine_on_one_patch)
