@@ -3,7 +3,7 @@
 
     python scripts/eval_pose_sim.py [--out output/eval_pose_sim] [--sequences office_loop,office_loop@5,...]
                                     [--scale 1.0] [--rate 20] [--json FILE] [--no-compare]
-                                    [--jobs 2] [--set KEY=VALUE]
+                                    [--jobs 2] [--set KEY=VALUE] [--oracle-loops]
     python scripts/eval_pose_sim.py --sequences all --jobs 2    # the README's 13 sequences (7 min on 2 cores)
 
 Every sequence is rendered once by ``mdr_slam.sim.generate`` (752x480 at 20 Hz by default; an
@@ -17,6 +17,11 @@ accepted loops (current, matched keyframe id) and each global BA after a loop (k
 points, outliers, ms).
 LOST frames inside each simulator segment (pure_rotation, corner) are counted separately.
 Prints a Markdown table and writes JSON (default DIR/eval_pose_sim.json).
+
+``--oracle-loops`` (a diagnostic, for loop sequences): each loop correction is scored against the
+simulator's relative pose of the two keyframes (``loop_errors``: kf, matched kf, m, deg), and a
+third run replaces every correction by the true one (``oracle``): when that run's ATE is no
+better than the measured loops', the loop measurement is not what limits loop closing there.
 """
 from __future__ import annotations
 
@@ -104,38 +109,81 @@ def first_pose_errors(est, gt):
             float(ang.max()))
 
 
-def track(bag: str, params: dict) -> dict:
+class LoopScorer:
+    """Scores every loop correction against the simulator's poses, and with ``oracle`` replaces
+    it by the true one (a diagnostic: what loop closing gives when the loop itself is exactly
+    measured). The correction S moves the current keyframe to cand.T_wc T_ck kf.T_cw; its error
+    is that of T_ck (the current keyframe seen from the matched one) against the truth's. Used as
+    a context manager around one run (it wraps LoopClosing.correct_loop)."""
+
+    def __init__(self, gt, oracle: bool):
+        self.gt_stamps = gt.stamps
+        self.gt_T = gt.matrices()
+        self.oracle = oracle
+        self.loops = []   # [kf id, cand id, error m, error deg]
+
+    def _true(self, stamp):
+        return self.gt_T[int(np.argmin(np.abs(self.gt_stamps - stamp)))]
+
+    def __enter__(self):
+        from scipy.spatial.transform import Rotation
+        from mdr_slam.geometry import inv_T
+        from mdr_slam.pose import loop_closing
+        self._cls = loop_closing.LoopClosing
+        self._orig = orig = self._cls.correct_loop
+        scorer = self
+
+        def correct_loop(lc, kf, cand, S, *args, **kw):
+            T_true = inv_T(scorer._true(cand.stamp)) @ scorer._true(kf.stamp)
+            D = inv_T(T_true) @ (cand.T_cw @ S @ kf.T_wc)
+            scorer.loops.append([int(kf.id), int(cand.id), float(np.linalg.norm(D[:3, 3])),
+                                 float(np.degrees(Rotation.from_matrix(D[:3, :3]).magnitude()))])
+            if scorer.oracle:
+                S = cand.T_wc @ T_true @ kf.T_cw
+            return orig(lc, kf, cand, S, *args, **kw)
+
+        self._cls.correct_loop = correct_loop
+        return self
+
+    def __exit__(self, *exc):
+        self._cls.correct_loop = self._orig
+        return False
+
+
+def track(bag: str, params: dict, scorer: LoopScorer = None) -> dict:
+    import contextlib
     from mdr_slam.pipeline import frames_from_bag
     from mdr_slam.pose import make_system
     camera, frames = frames_from_bag(bag)
     system = make_system(camera, params, threads=False)   # backend=orbslam3: ORB-SLAM3's tracker
     stamps, states, ms = [], [], []
     r = None
-    try:
-        for f in frames:
-            r = system.track(f.stamp, f.left, f.right)
-            stamps.append(f.stamp)
-            states.append(r.state)
-            ms.append(r.time_ms)
-        traj = system.trajectory()
-        mp = getattr(system, "map", None)
-        n_loops = int(mp.n_loop_closures) if mp is not None else \
-            (int(r.n_loop_closures) if r is not None else 0)
-        lc = getattr(system, "loop_closing", None)
-        gba = [{k: v for k, v in g.items() if k != "moved"}
-               for g in (getattr(lc, "global_ba_runs", []) if lc is not None else [])]
-        loops = [list(x) for x in lc.loops] if lc is not None else []
-        prox = [list(x) for x in getattr(lc, "proximity_loops", [])] if lc is not None else []
-        n_kfs = len(mp.good_keyframes()) if mp is not None else 0
-    finally:
-        system.shutdown()
+    with (scorer if scorer is not None else contextlib.nullcontext()):
+        try:
+            for f in frames:
+                r = system.track(f.stamp, f.left, f.right)
+                stamps.append(f.stamp)
+                states.append(r.state)
+                ms.append(r.time_ms)
+            traj = system.trajectory()
+            mp = getattr(system, "map", None)
+            n_loops = int(mp.n_loop_closures) if mp is not None else \
+                (int(r.n_loop_closures) if r is not None else 0)
+            lc = getattr(system, "loop_closing", None)
+            gba = [{k: v for k, v in g.items() if k != "moved"}
+                   for g in (getattr(lc, "global_ba_runs", []) if lc is not None else [])]
+            loops = [list(x) for x in lc.loops] if lc is not None else []
+            prox = [list(x) for x in getattr(lc, "proximity_loops", [])] if lc is not None else []
+            n_kfs = len(mp.good_keyframes()) if mp is not None else 0
+        finally:
+            system.shutdown()
     return {"stamps": np.array(stamps), "states": states, "traj": traj, "loops": n_loops,
             "keyframes": n_kfs, "ms": np.array(ms), "global_ba": gba, "loop_pairs": loops,
             "proximity_loops": prox}
 
 
 def evaluate(name: str, out: str, rate: float, scale: float, compare: bool,
-             overrides: dict = None) -> dict:
+             overrides: dict = None, oracle: bool = False) -> dict:
     import yaml
     from mdr_slam.eval import ate
     from mdr_slam.io import read_tum, write_tum
@@ -155,11 +203,13 @@ def evaluate(name: str, out: str, rate: float, scale: float, compare: bool,
     res = {"sequence": name, "scene": scene, "trajectory": kind, "duration_s": duration,
            "seed": seed, "rate_hz": rate, "scale": scale, "path_length_m": path,
            "param_overrides": dict(overrides or {}), **rinfo}
-    runs = [("lc", True)] + ([("no_lc", False)] if (compare and loop_seq) else [])
+    runs = [("lc", True)] + ([("no_lc", False)] if (compare and loop_seq) else []) + \
+        ([("oracle", True)] if (oracle and loop_seq) else [])
     for tag, lc in runs:
         p = dict(params, loop_closing=lc)
         t0 = time.perf_counter()
-        r = track(os.path.join(d, "sequence.bag"), p)
+        scorer = LoopScorer(gt, tag == "oracle") if (oracle and lc) else None
+        r = track(os.path.join(d, "sequence.bag"), p, scorer)
         wall = time.perf_counter() - t0
         write_tum(os.path.join(d, "trajectory_%s.tum" % tag), r["traj"])
         states = r["states"]
@@ -200,10 +250,32 @@ def evaluate(name: str, out: str, rate: float, scale: float, compare: bool,
             "track_ms_median": float(np.median(r["ms"])),
             "track_ms_p90": float(np.percentile(r["ms"], 90)),
         }
+        if scorer is not None:   # each loop's error against the simulator's relative pose
+            res[tag]["loop_errors"] = scorer.loops
     if "no_lc" in res:
         a1, a0 = res["lc"]["ate_rmse_m"], res["no_lc"]["ate_rmse_m"]
         res["lc_over_no_lc"] = a1 / a0 if a0 > 0 else float("nan")
+        if "oracle" in res:
+            a2 = res["oracle"]["ate_rmse_m"]
+            res["oracle_over_no_lc"] = a2 / a0 if a0 > 0 else float("nan")
     return res
+
+
+def oracle_table(results: list) -> str:
+    """--oracle-loops: ATE with the loops as measured, with the true loops, and without."""
+    rows = ["| sequence | loops as measured: error of each (m / deg) | ATE LC m | ATE true loops m | "
+            "ATE no LC m | LC / no LC | true loops / no LC |", "|---|---|---|---|---|---|---|"]
+    for r in results:
+        if "oracle" not in r:
+            continue
+        errs = ", ".join("%d-%d %.3f / %.2f" % tuple(e) for e in r["lc"].get("loop_errors", []))
+        nl = r.get("no_lc")
+        rows.append("| %s | %s | %.4f | %.4f | %s | %s | %s |" % (
+            r["sequence"], errs or "none", r["lc"]["ate_rmse_m"], r["oracle"]["ate_rmse_m"],
+            "%.4f" % nl["ate_rmse_m"] if nl else "-",
+            "%.2f" % r["lc_over_no_lc"] if nl else "-",
+            "%.2f" % r["oracle_over_no_lc"] if nl else "-"))
+    return "\n".join(rows)
 
 
 def expand_sequences(spec: str) -> list:
@@ -279,6 +351,10 @@ def main(argv=None) -> int:
     ap.add_argument("--scale", type=float, default=1.0, help="image scale (1: 752x480)")
     ap.add_argument("--no-compare", action="store_true",
                     help="skip the loop_closing: false runs")
+    ap.add_argument("--oracle-loops", action="store_true",
+                    help="diagnostic: score every loop correction against the simulator's poses "
+                    "and add a run whose loop corrections are the true ones (what loop closing "
+                    "gives when the loop itself is exactly measured)")
     ap.add_argument("--json", default=None)
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="override a pose parameter of config/pose.yaml (repeatable), e.g. ba_tol=0")
@@ -297,7 +373,8 @@ def main(argv=None) -> int:
         overrides[k.strip()] = yaml.safe_load(v)
     os.makedirs(a.out, exist_ok=True)
     results = []
-    jobs = [(n, a.out, a.rate, a.scale, not a.no_compare, overrides) for n in names]
+    jobs = [(n, a.out, a.rate, a.scale, not a.no_compare, overrides, a.oracle_loops)
+            for n in names]
     if a.jobs > 1 and len(jobs) > 1:
         import multiprocessing
         pool = multiprocessing.get_context("spawn").Pool(min(a.jobs, len(jobs)))
@@ -317,6 +394,9 @@ def main(argv=None) -> int:
     print(table(results))
     print()
     print(summary(results))
+    if a.oracle_loops:
+        print()
+        print(oracle_table(results))
     path = a.json or os.path.join(a.out, "eval_pose_sim.json")
     with open(path, "w") as f:
         json.dump(results, f, indent=1)

@@ -1532,6 +1532,50 @@ def test_stereo_texture_errors_script_finds_the_noise_disparities(root_dir, tmp_
     assert "| 0-2.5 |" in r.stdout
 
 
+def test_eval_pose_sim_scores_loops_and_replaces_them_by_the_truth(root_dir, monkeypatch):
+    """scripts/eval_pose_sim.py --oracle-loops: a loop correction S is scored against the
+    simulator's relative pose of its two keyframes, and in the oracle run replaced by the true
+    correction; LoopClosing.correct_loop is restored afterwards."""
+    import importlib.util
+    import os
+    from types import SimpleNamespace
+    from mdr_slam.io import Trajectory
+    from mdr_slam.pose import loop_closing
+    spec = importlib.util.spec_from_file_location(
+        "eval_pose_sim", os.path.join(root_dir, "scripts", "eval_pose_sim.py"))
+    m = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(m)
+    got = []
+    monkeypatch.setattr(loop_closing.LoopClosing, "correct_loop",
+                        lambda lc, kf, cand, S, *a, **k: got.append(S))
+    G = [make_T(Rotation.from_rotvec([0, 0.3 * i, 0]).as_matrix(), [i, 0.1 * i, 0]) for i in range(3)]
+    gt = Trajectory.from_matrices([0.0, 1.0, 2.0], G)
+    drift = make_T(Rotation.from_rotvec([0, 0.05, 0]).as_matrix(), [0.2, 0, 0])  # kf's error
+
+    def kf_at(stamp, T_wc, id_):
+        return SimpleNamespace(stamp=stamp, id=id_, T_wc=T_wc, T_cw=inv_T(T_wc))
+    cand, kf = kf_at(0.0, G[0], 0), kf_at(2.0, G[2] @ drift, 9)
+    S_wrong = make_T(Rotation.from_rotvec([0, 0.02, 0]).as_matrix(), [0.1, 0, 0])
+    for oracle in (False, True):
+        scorer = m.LoopScorer(gt, oracle)
+        with scorer:
+            loop_closing.LoopClosing.correct_loop(None, kf, cand, S_wrong)
+        kf_id, cand_id, err_m, err_deg = scorer.loops[0]
+        assert (kf_id, cand_id) == (9, 0) and err_m > 0.05 and err_deg > 0.5
+        S = got[-1]
+        if oracle:   # the corrected keyframe lands on its true pose relative to cand
+            np.testing.assert_allclose(inv_T(cand.T_wc) @ S @ kf.T_wc, inv_T(G[0]) @ G[2],
+                                       atol=1e-9)
+        else:
+            assert S is S_wrong
+    assert loop_closing.LoopClosing.correct_loop(None, kf, cand, S_wrong) is None and \
+        got[-1] is S_wrong   # unwrapped again
+    row = {"sequence": "s", "lc": {"ate_rmse_m": 0.02, "loop_errors": [[9, 0, 0.1, 2.0]]},
+           "oracle": {"ate_rmse_m": 0.01}, "no_lc": {"ate_rmse_m": 0.04},
+           "lc_over_no_lc": 0.5, "oracle_over_no_lc": 0.25}
+    assert "| s | 9-0 0.100 / 2.00 | 0.0200 | 0.0100 | 0.0400 | 0.50 | 0.25 |" in m.oracle_table([row])
+
+
 def test_eval_pose_sim_aliases_and_summary(root_dir):
     """scripts/eval_pose_sim.py --sequences all: the defaults and the 8 other seeds of the
     README's table, each once; the summary gives mean / max ATE % and the loop ratios."""
