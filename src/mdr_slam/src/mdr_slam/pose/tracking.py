@@ -23,7 +23,7 @@ import numpy as np
 from ..geometry import inv_T
 from .frame import Frame
 from .matcher import ORBmatcher
-from .optimizer import Optimizer, normalize_pose
+from .optimizer import Optimizer, normalize_pose, project_residuals
 
 __all__ = ["Tracking", "NOT_INITIALIZED", "OK", "LOST", "RELOCALIZED"]
 
@@ -455,11 +455,10 @@ class Tracking:
             return False
         _set_pnp_pose(frame, rvec, tvec)
         if len(fit) < len(sel):   # every track within 2 px of that pose
-            Pc = Pw @ frame.T_cw[:3, :3].T + frame.T_cw[:3, 3]
-            z = np.maximum(Pc[:, 2], 1e-6)
-            e = np.hypot(frame.fx * Pc[:, 0] / z + frame.cx - p1[:, 0],
-                         frame.fy * Pc[:, 1] / z + frame.cy - p1[:, 1])
-            inl = np.nonzero((Pc[:, 2] > 0) & (e <= 2.0))[0]
+            e, Pc = project_residuals(frame.T_cw, Pw, np.column_stack([p1, np.zeros(len(p1))]),
+                                      np.zeros(len(p1), bool), frame.fx, frame.fy, frame.cx,
+                                      frame.cy, frame.bf)
+            inl = np.nonzero((Pc[:, 2] > 0) & (np.hypot(e[:, 0], e[:, 1]) <= 2.0))[0]
         else:
             inl = inl.ravel()
         if self._append_tracks(frame, sel[inl], ids[inl], Pw[inl], p1[inl]) < 10:
