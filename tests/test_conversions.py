@@ -55,7 +55,7 @@ def test_image_padding_bigendian_and_mono():
 
 def test_image_errors_are_clear():
     msg = cv.numpy_to_image(np.zeros((10, 10), np.uint8))
-    msg.encoding = "yuv422"
+    msg.encoding = "nv12"
     with pytest.raises(cv.ConversionError, match="unsupported image encoding"):
         cv.image_to_numpy(msg)
     msg.encoding = "mono8"

@@ -114,7 +114,7 @@ def test_depth_node_publishes_points_from_pose_topic_and_survives_bad_input(rosp
     st = base + rospy.Duration(2.0)
     pose_pub.publish(cv.matrix_to_pose_stamped(np.eye(4), st, "map"))
     rospy.sleep(0.05)
-    sp.publish(st, left, right, left_enc="yuv422")
+    sp.publish(st, left, right, left_enc="nv12")
     rospy.sleep(0.3)
     st = base + rospy.Duration(2.1)
     pose_pub.publish(cv.matrix_to_pose_stamped(np.eye(4), st, "map"))

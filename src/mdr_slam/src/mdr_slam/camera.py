@@ -7,15 +7,19 @@ the depth and pose nodes can work from the CameraInfo pair of a bag, and the cal
 A :class:`StereoCamera` is the rectified pair the algorithms use: focal length ``fx, fy``,
 principal point ``cx, cy``, baseline ``B`` (metres) and size, plus the remap tables that turn raw
 images into rectified ones (identity when the input is already rectified).
+
+Rectified images may come with the raw calibration (stereo_image_proc's ``image_rect`` topics
+publish the raw camera_info): :func:`images_are_rectified` decides from a setting and the topic
+name, and :meth:`StereoCamera.assume_rectified` makes the camera that does not rectify again.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Optional, Tuple
+from typing import Optional, Tuple, Union
 
 import numpy as np
 
-__all__ = ["CameraModel", "StereoCamera", "CalibrationError"]
+__all__ = ["CameraModel", "StereoCamera", "CalibrationError", "images_are_rectified"]
 
 
 class CalibrationError(ValueError):
@@ -130,6 +134,15 @@ class StereoCamera:
         cam._maps = maps
         return cam
 
+    def assume_rectified(self) -> "StereoCamera":
+        """A copy for images that are already rectified: each side's raw model is its rectified
+        one (K = P[:3, :3], no distortion, R = I; P, size and frame unchanged), so
+        :meth:`rectify` passes images through and fx, baseline and doffs are what P says."""
+        def rect(m: CameraModel) -> CameraModel:
+            return CameraModel(m.width, m.height, m.P[:, :3].copy(), np.zeros(5), np.eye(3),
+                               m.P.copy(), distortion_model="plumb_bob", frame_id=m.frame_id)
+        return StereoCamera(rect(self.left), rect(self.right))
+
     @property
     def size(self) -> Tuple[int, int]:
         """(width, height)."""
@@ -208,3 +221,27 @@ class StereoCamera:
         Pr[0, 3] = -fx * baseline
         return cls(CameraModel(width, height, K, np.zeros(5), np.eye(3), Pl, frame_id=frame_id),
                    CameraModel(width, height, Kr, np.zeros(5), np.eye(3), Pr, frame_id=frame_id))
+
+
+def images_are_rectified(setting: Union[str, bool], topic: Optional[str], camera) -> bool:
+    """Whether the images on ``topic`` are rectified, for a ``rectified`` parameter.
+
+    ``setting`` "true"/"false" (or a bool) forces the answer. "auto" says rectified when the
+    topic's last name (ignoring an image_transport ``compressed`` suffix) starts with
+    "image_rect" (stereo_image_proc's ``image_rect``, ZED's ``image_rect_color``, RealSense's
+    ``image_rect_raw``), since those come with the raw camera_info; otherwise it is what the
+    calibration says (``camera.is_rectified``, a CameraModel or StereoCamera).
+    """
+    if isinstance(setting, (bool, np.bool_)):
+        return bool(setting)
+    s = setting.strip().lower() if isinstance(setting, str) else None
+    if s in ("true", "false"):
+        return s == "true"
+    if s != "auto":
+        raise ValueError("rectified must be 'auto', 'true' or 'false', not %r" % (setting,))
+    names = [n for n in (topic or "").split("/") if n]
+    if len(names) > 1 and names[-1] in ("compressed", "theora"):
+        names.pop()
+    if names and names[-1].startswith("image_rect"):
+        return True
+    return bool(camera.is_rectified)

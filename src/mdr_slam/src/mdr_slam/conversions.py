@@ -4,8 +4,14 @@ Nodes and the bag tools call these; the core library (pose, depth, fusion, sim, 
 ROS message. Everything here raises :class:`ConversionError` (a ``ValueError``) with a message a
 user can act on when a message is malformed, so a node can log it (throttled) and skip the input.
 
-- Image <-> ndarray: mono8, mono16, bgr8, rgb8, bgra8, rgba8, 8UC1, 16UC1, 32FC1 (row padding
-  and big-endian data handled). Colour images can be turned into grey with ``to_mono=True``.
+- Image <-> ndarray: mono8, mono16, bgr8, rgb8, bgra8, rgba8, 8UC1, 8UC3, 16UC1, 32FC1, bgr16,
+  rgb16, bgra16, rgba16, the Bayer encodings (bayer_rggb8 ... bayer_grbg16) and yuv422 (UYVY) /
+  yuv422_yuy2 (row padding and big-endian data handled). Colour, Bayer and YUV images are turned
+  into grey with ``to_mono=True`` (OpenCV's conversions, with cv_bridge's Bayer mapping);
+  :func:`image_to_mono8` gives the 8-bit grey image the depth and pose code work on.
+- CompressedImage (image_transport's ``compressed`` plugin: png, jpeg) -> grey with
+  :func:`compressed_image_to_mono8`; :func:`numpy_to_compressed_image` writes one with the
+  ``format`` string compressed_image_transport writes (for driver-like bags).
 - CameraInfo <-> :class:`mdr_slam.camera.CameraModel`.
 - PointCloud2 <-> dict of per-field arrays (any FLOAT32/FLOAT64/integer fields) via one structured
   numpy view of the buffer: sensor_msgs.point_cloud2's per-point Python path takes seconds for
@@ -20,14 +26,15 @@ from typing import Dict, Mapping, Optional, Sequence
 import numpy as np
 
 from geometry_msgs.msg import Pose, PoseStamped, Transform, TransformStamped
-from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2, PointField
 from std_msgs.msg import Header
 
 from .camera import CameraModel
 from .geometry import make_T, quat_to_R, R_to_quat
 
 __all__ = [
-    "ConversionError", "image_to_numpy", "image_to_mono8", "numpy_to_image", "camera_info_to_model",
+    "ConversionError", "image_to_numpy", "image_to_mono8", "numpy_to_image",
+    "compressed_image_to_mono8", "numpy_to_compressed_image", "camera_info_to_model",
     "model_to_camera_info", "pointcloud2_to_arrays", "pointcloud2_to_xyz", "arrays_to_pointcloud2",
     "pose_to_matrix", "matrix_to_pose", "pose_stamped_to_matrix", "matrix_to_pose_stamped",
     "transform_to_matrix", "matrix_to_transform", "transform_stamped_to_matrix",
@@ -76,15 +83,29 @@ _ENCODINGS = {
     "mono16": (np.uint16, 1), "16UC1": (np.uint16, 1),
     "bgr8": (np.uint8, 3), "rgb8": (np.uint8, 3), "8UC3": (np.uint8, 3),
     "bgra8": (np.uint8, 4), "rgba8": (np.uint8, 4),
+    "bgr16": (np.uint16, 3), "rgb16": (np.uint16, 3), "bgra16": (np.uint16, 4),
+    "rgba16": (np.uint16, 4),
+    "yuv422": (np.uint8, 2), "yuv422_yuy2": (np.uint8, 2),
     "32FC1": (np.float32, 1),
 }
+# encoding -> name of the cv2 code that makes it grey. Bayer as cv_bridge maps it: OpenCV names a
+# pattern by the 2nd and 3rd pixels of its second row, so ROS "rggb" (RGGB...) is OpenCV's "BG".
+_GREY_CODES = {"bgr8": "BGR2GRAY", "8UC3": "BGR2GRAY", "rgb8": "RGB2GRAY", "bgra8": "BGRA2GRAY",
+               "rgba8": "RGBA2GRAY", "bgr16": "BGR2GRAY", "rgb16": "RGB2GRAY",
+               "bgra16": "BGRA2GRAY", "rgba16": "RGBA2GRAY",
+               "yuv422": "YUV2GRAY_UYVY", "yuv422_yuy2": "YUV2GRAY_YUY2"}
+_BAYER = {"rggb": "BG", "bggr": "RG", "gbrg": "GR", "grbg": "GB"}
+_ENCODINGS.update({"bayer_%s%d" % (p, b): (np.uint8 if b == 8 else np.uint16, 1)
+                   for p in _BAYER for b in (8, 16)})
+_GREY_CODES.update({"bayer_%s%d" % (p, b): "Bayer%s2GRAY" % c
+                    for p, c in _BAYER.items() for b in (8, 16)})
 
 
 def image_to_numpy(msg: Image, to_mono: bool = False) -> np.ndarray:
     """(H, W) or (H, W, C) array viewing ``msg.data`` (copied only when padding/endianness need it).
 
-    ``to_mono=True`` returns a single-channel image (grey from colour with OpenCV's weights; mono16
-    and float stay as they are).
+    ``to_mono=True`` returns a single-channel image (grey from colour, Bayer and YUV images with
+    OpenCV's conversions, in the source bit depth; mono16 and float stay as they are).
     """
     enc = msg.encoding
     if enc not in _ENCODINGS:
@@ -113,28 +134,28 @@ def image_to_numpy(msg: Image, to_mono: bool = False) -> np.ndarray:
         arr = arr.astype(dt.newbyteorder("="))
     if ch == 1:
         arr = arr[:, :, 0]
-    if to_mono and ch > 1:
+    if to_mono and enc in _GREY_CODES:
         import cv2
-        code = {"bgr8": cv2.COLOR_BGR2GRAY, "8UC3": cv2.COLOR_BGR2GRAY, "rgb8": cv2.COLOR_RGB2GRAY,
-                "bgra8": cv2.COLOR_BGRA2GRAY, "rgba8": cv2.COLOR_RGBA2GRAY}[enc]
-        arr = cv2.cvtColor(np.ascontiguousarray(arr), code)
+        arr = cv2.cvtColor(np.ascontiguousarray(arr), getattr(cv2, "COLOR_" + _GREY_CODES[enc]))
     return arr
 
 
 # encodings that carry intensity (16UC1 and 32FC1 are depth/disparity images, not camera images)
-_INTENSITY = ("mono8", "8UC1", "mono16", "bgr8", "rgb8", "8UC3", "bgra8", "rgba8")
+_INTENSITY = tuple(e for e in _ENCODINGS if e not in ("16UC1", "32FC1"))
 
 
 def image_to_mono8(msg: Image) -> np.ndarray:
     """(H, W) uint8 grey image of a camera image message (what ELAS and ORB need).
 
-    Colour is converted to grey, mono16 is scaled as cv_bridge does (value / 256). Raises
-    ConversionError for encodings that are not intensity images (16UC1, 32FC1: depth maps) and
-    for the malformed messages :func:`image_to_numpy` refuses.
+    Colour, Bayer (demosaiced as cv_bridge does) and YUV 4:2:2 are converted to grey; 16-bit
+    images keep their high byte (value >> 8; cv_bridge's 255/65535 scaling differs by at most 1).
+    Raises ConversionError for encodings that are not intensity images (16UC1, 32FC1: depth maps)
+    and for the malformed messages :func:`image_to_numpy` refuses.
     """
     if msg.encoding in _ENCODINGS and msg.encoding not in _INTENSITY:
-        raise ConversionError("image encoding %r is not a camera intensity image (expected one of %s)"
-                              % (msg.encoding, ", ".join(_INTENSITY)))
+        raise ConversionError("image encoding %r is not a camera intensity image (a depth or "
+                              "disparity map; expected mono8/16, bgr8, rgb8, bayer_*, yuv422, ...)"
+                              % msg.encoding)
     img = image_to_numpy(msg, to_mono=True)
     if img.dtype == np.uint16:
         img = (img >> 8).astype(np.uint8)
@@ -167,6 +188,73 @@ def numpy_to_image(arr: np.ndarray, encoding: Optional[str] = None, stamp=None,
     a = np.ascontiguousarray(arr, dtype=np.dtype(dtype).newbyteorder("<"))
     msg.step = int(msg.width * ch * a.itemsize)
     msg.data = a.tobytes()
+    return msg
+
+
+# -------------------------------------------------------------------------- CompressedImage
+def compressed_image_to_mono8(msg: CompressedImage) -> np.ndarray:
+    """(H, W) uint8 grey image of a png or jpeg CompressedImage (image_transport's ``compressed``).
+
+    Any ``format`` compressed_image_transport writes ("bgr8; jpeg compressed bgr8",
+    "mono8; png compressed ", or just "jpeg"/"png" from old publishers) is decoded by what the data
+    is: 8-bit images straight to grey, 16-bit png unchanged and then its high byte, as
+    :func:`image_to_mono8` does. Raises ConversionError for compressedDepth images (depth maps)
+    and for empty, undecodable or truncated data.
+    """
+    import cv2
+    fmt = msg.format or ""
+    if "compresseddepth" in fmt.lower():
+        raise ConversionError("CompressedImage format %r is a compressed depth image, not a camera "
+                              "image" % fmt)
+    data = _as_bytes(msg.data)
+    if len(data) == 0:
+        raise ConversionError("CompressedImage (format %r) has no data" % fmt)
+    if bytes(data[:2]) == b"\xff\xd8" and not bytes(data[-16:]).rstrip(b"\0").endswith(b"\xff\xd9"):
+        # libjpeg decodes a truncated stream with only a warning, grey-filling the missing rows
+        raise ConversionError("CompressedImage jpeg data is truncated (no end-of-image marker, "
+                              "%d bytes)" % len(data))
+    # PNG bit depth is byte 24 (signature, IHDR length and type, width, height)
+    png16 = bytes(data[:8]) == b"\x89PNG\r\n\x1a\n" and len(data) > 24 and data[24] == 16
+    img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8),
+                       cv2.IMREAD_UNCHANGED if png16 else cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        raise ConversionError("cannot decode CompressedImage (format %r, %d bytes): not png/jpeg "
+                              "or truncated" % (fmt, len(data)))
+    if img.ndim == 3:
+        code = {3: cv2.COLOR_BGR2GRAY, 4: cv2.COLOR_BGRA2GRAY}.get(img.shape[2])
+        if code is None:
+            raise ConversionError("CompressedImage png has %d channels" % img.shape[2])
+        img = cv2.cvtColor(img, code)
+    if img.dtype == np.uint16:
+        img = (img >> 8).astype(np.uint8)
+    return img
+
+
+def numpy_to_compressed_image(arr: np.ndarray, fmt: str = "jpeg", stamp=None, frame_id: str = "",
+                              quality: int = 95) -> CompressedImage:
+    """CompressedImage of a mono8 (H, W) or bgr8 (H, W, 3) uint8 array (png also takes mono16),
+    with the ``format`` compressed_image_transport writes: "mono8; jpeg compressed ",
+    "bgr8; jpeg compressed bgr8", "mono8; png compressed ", "bgr8; png compressed bgr8".
+    ``quality`` is the jpeg quality (0-100)."""
+    import cv2
+    arr = np.asarray(arr)
+    if fmt not in ("jpeg", "png"):
+        raise ConversionError("compressed format must be 'jpeg' or 'png', not %r" % (fmt,))
+    ch = 1 if arr.ndim == 2 else (arr.shape[2] if arr.ndim == 3 else 0)
+    enc = {(np.dtype(np.uint8), 1): "mono8", (np.dtype(np.uint8), 3): "bgr8",
+           (np.dtype(np.uint16), 1): "mono16" if fmt == "png" else None}.get((arr.dtype, ch))
+    if enc is None:
+        raise ConversionError("cannot %s-compress a %s array of shape %s (mono8 or bgr8 arrays; "
+                              "mono16 for png)" % (fmt, arr.dtype, arr.shape))
+    params = [cv2.IMWRITE_JPEG_QUALITY, int(quality)] if fmt == "jpeg" else []
+    ok, data = cv2.imencode(".jpg" if fmt == "jpeg" else ".png", np.ascontiguousarray(arr), params)
+    if not ok:
+        raise ConversionError("cv2.imencode (%s) failed for a %s array" % (fmt, arr.shape))
+    msg = CompressedImage()
+    msg.header = make_header(stamp, frame_id)
+    # the transport appends the target encoding for colour images only (mono ends in a space)
+    msg.format = "%s; %s compressed %s" % (enc, fmt, "bgr8" if enc == "bgr8" else "")
+    msg.data = data.tobytes()
     return msg
 
 
