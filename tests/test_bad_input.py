@@ -113,7 +113,7 @@ def _fusion(start_process, tmp_path, name, extra=()):
     return start_process(["rosrun", "mdr_slam", "fusion_node", "__name:=" + name,
                           "_map_path:=%s" % (tmp_path / (name + ".ply")), "_autosave_period:=0.0",
                           "_voxel_size:=0.05", "_tf_timeout:=0.3", "_clean_every:=0",
-                          "_sync_slop:=0.02", "/mdr/depth/points:=/%s/cloud" % name,
+                          "_sync_tolerance:=0.02", "/mdr/depth/points:=/%s/cloud" % name,
                           "/mdr/pose:=/%s/pose" % name, "/mdr/map/points:=/%s/map" % name,
                           "/mdr/map/grid:=/%s/grid" % name, "/mdr/keyframes:=/%s/kf" % name,
                           "/mdr/tracking_state:=/%s/state" % name] + list(extra), name)

@@ -166,7 +166,7 @@ def test_fusion_node_pose_topic_sync(rospy_client, start_process, tmp_path):
     from geometry_msgs.msg import PoseStamped
     from sensor_msgs.msg import PointCloud2
     name = "fusion_c"
-    node = _node(start_process, tmp_path, name, ["_pose_source:=topic", "_sync_slop:=0.02",
+    node = _node(start_process, tmp_path, name, ["_pose_source:=topic", "_sync_tolerance:=0.02",
                                                    "/mdr/pose:=/%s/pose" % name])
     maps = []
     rospy.Subscriber("/%s/map" % name, PointCloud2, maps.append)

@@ -110,13 +110,13 @@ def test_costmap_parameters_match_the_fusion_grid():
     glob = yaml.safe_load(open(os.path.join(nav, "global_costmap_params.yaml")))["global_costmap"]
     local = yaml.safe_load(open(os.path.join(nav, "local_costmap_params.yaml")))["local_costmap"]
     mb = yaml.safe_load(open(os.path.join(nav, "move_base.yaml")))
-    assert common["static_layer"]["map_topic"] == "/mdr/map/grid"
+    assert common["static_layer"]["map_topic"] == "mdr/map/grid"   # relative: follows a namespace
     assert glob["global_frame"] == fusion["map_frame"] and glob["robot_base_frame"] == "base_link"
     assert glob["resolution"] == fusion["grid_resolution"]
     assert local["global_frame"] == "odom" and local["rolling_window"]
     ol = common["obstacle_layer"]
     srcs = {ol[s]["topic"]: ol[s] for s in ol["observation_sources"].split()}
-    assert srcs["/mdr/map/points"]["marking"] and not srcs["/mdr/map/points"]["clearing"]
+    assert srcs["mdr/map/points"]["marking"] and not srcs["mdr/map/points"]["clearing"]
     for s in srcs.values():
         assert s["min_obstacle_height"] == fusion["grid_z_min"]
         assert s["max_obstacle_height"] == fusion["grid_z_max"]
@@ -171,7 +171,7 @@ def sample_map(sample_bag):
     (``to_cloud(0)`` after frame MID_FRAME and after the last frame), the fusion parameters, the
     camera positions and the costmap parameters."""
     from mdr_slam.pipeline import Pipeline, PipelineConfig, frames_from_bag, load_params
-    cam, frames = frames_from_bag(os.path.join(sample_bag, "sequence.bag"))
+    cam, frames = frames_from_bag(os.path.join(sample_bag, "sequence.bag"), ground_truth=True)
     pl = Pipeline(cam, PipelineConfig(pose_source="groundtruth"))
     snaps = {}
     t0 = time.perf_counter()

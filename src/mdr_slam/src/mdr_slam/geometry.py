@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 __all__ = [
     "parse_transform",
     "make_T", "inv_T", "transform_points", "quat_to_R", "R_to_quat", "T_from_pos_quat",
-    "pos_quat_from_T", "is_valid_T", "rotation_angle", "relative_motion",
+    "pos_quat_from_T", "is_valid_T", "rotation_angle", "relative_motion", "body_twist",
 ]
 
 
@@ -107,6 +107,14 @@ def relative_motion(T_a: np.ndarray, T_b: np.ndarray):
     """Translation (m) and rotation (rad) between two poses of the same frame."""
     D = inv_T(T_a) @ T_b
     return float(np.linalg.norm(D[:3, 3])), rotation_angle(D[:3, :3])
+
+
+def body_twist(T0: np.ndarray, T1: np.ndarray, dt: float):
+    """Linear (m/s) and angular (rad/s) velocity, in the moving frame, that takes pose ``T0`` to
+    ``T1`` in ``dt`` s (nav_msgs/Odometry's twist, given in its child frame)."""
+    D = inv_T(T0) @ T1
+    w = Rotation.from_matrix(D[:3, :3]).as_rotvec()
+    return D[:3, 3] / dt, w / dt
 
 
 def parse_transform(text, default=None) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Helpers shared by the nodes: parameters, throttled warnings, time checks, static tf."""
+"""Helpers shared by the nodes: parameters, throttled warnings, time checks, tf."""
 from __future__ import annotations
 
 import numpy as np
@@ -131,7 +131,7 @@ def skip_future_stamp(t: float, max_future: float, warn: "Throttled", what: str)
     return ahead > 0
 
 
-def transform_listener(buffer, max_future: float, warn: "Throttled", node: str):
+def transform_listener(buffer, max_future: float, warn: "Throttled", node: str, on_transform=None):
     """A ``tf2_ros.TransformListener`` for ``buffer`` that drops transforms stamped more than
     ``max_future`` s ahead of the ROS clock (:func:`seconds_ahead_of_clock`).
 
@@ -150,6 +150,8 @@ def transform_listener(buffer, max_future: float, warn: "Throttled", node: str):
                 reset()
             who = data._connection_header.get("callerid", "default_authority")
             for tr in data.transforms:
+                if on_transform is not None:
+                    on_transform(tr, who)
                 ahead = seconds_ahead_of_clock(tr.header.stamp.to_sec(), max_future)
                 if ahead > 0:
                     warn("tffuture", "%s: tf %s <- %s stamped %.3f s ahead of the clock (from "
@@ -160,3 +162,19 @@ def transform_listener(buffer, max_future: float, warn: "Throttled", node: str):
 
     rospy.logdebug("%s: tf listener drops transforms > %.1f s ahead of the clock", node, max_future)
     return _Listener(buffer)
+
+
+def frame_root(buffer, frame: str) -> str:
+    """The root of ``frame``'s tree in a tf2 buffer (``frame`` itself when it has no parent)."""
+    import yaml
+    try:
+        frames = yaml.safe_load(buffer.all_frames_as_yaml()) or {}
+    except Exception:   # noqa: BLE001  (an empty buffer gives "[]")
+        return frame
+    if not isinstance(frames, dict):
+        return frame
+    seen = set()
+    while frame in frames and frame not in seen:
+        seen.add(frame)
+        frame = frames[frame].get("parent", frame)
+    return frame

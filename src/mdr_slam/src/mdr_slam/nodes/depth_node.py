@@ -2,9 +2,9 @@
 
 Thin shell around :class:`mdr_slam.depth.StereoDepth`:
 
-- inputs ``left/image``, ``right/image`` (+ ``left/camera_info``, ``right/camera_info`` unless a
-  ``~calib`` file is given) through message_filters (ExactTime, or ApproximateTime with
-  ``~approximate_sync`` and ``~slop``);
+- inputs ``left/image``, ``right/image`` (raw or ``~image_transport: compressed``) and
+  ``left/camera_info``, ``right/camera_info`` (unless a ``~calib`` file is given), paired by
+  approximate time (``~sync_tolerance``; :mod:`mdr_slam.nodes.stereo_input`);
 - the left camera pose at the image stamp from tf2 (``map`` <- camera frame, ``~use_tf``) or from
   the ``~pose_source_topic`` PoseStamped stream through an interpolating time cache;
 - optional keyframe events and pose corrections from ``/mdr/keyframes`` (KeyFrameArray);
@@ -53,22 +53,24 @@ import numpy as np
 from .common import (ClockWatch, StampGuard, StampRateLimiter, Throttled, get_params,
                      skip_future_stamp, transform_listener)
 from .health import update_diagnostics
+from .stereo_input import StereoInput, to_mono8
 
 DEFAULTS = {
     "map_frame": "map",
     "camera_frame": "",             # tf frame of the left camera; empty = the image's frame_id
     "use_tf": True,                 # pose from tf2; False: from pose_source_topic
-    "pose_source_topic": "/mdr/pose",
+    "pose_source_topic": "mdr/pose",
     "tf_timeout": 0.1,              # s to wait for tf / for the pose of an image stamp
     "max_future_stamp": 1.0,        # s (sim time): pairs and tf stamped further ahead of the clock are dropped
     "max_rate": 0.0,                # Hz of pairs processed (by stamp); 0 = every pair
-    "tracking_state_topic": "/mdr/tracking_state",   # skip pairs while LOST ("" = never)
+    "tracking_state_topic": "mdr/tracking_state",    # skip pairs while LOST ("" = never)
     "pose_max_gap": 0.25,           # s between two cached poses to interpolate between them
-    "keyframe_topic": "/mdr/keyframes",
+    "keyframe_topic": "mdr/keyframes",
     "use_keyframe_events": True,    # follow the pose node's keyframes once it publishes any
-    "approximate_sync": False,
-    "slop": 0.01,
-    "queue_size": 5,
+    "sync_tolerance": 0.0,          # s between a stereo pair's stamps; 0 = 0.4 of the frame period
+    "sync_queue_size": 10,
+    "image_transport": "raw",       # raw or compressed (<image topic>/compressed)
+    "rectified": "auto",            # auto: image_rect* topics and distortion-free camera_info are rectified
     "calib": "",                    # calibration file(s) for inputs without camera_info
     "publish_depth_image": False,
     "diagnostic_period": 1.0,
@@ -81,8 +83,7 @@ DEFAULTS = {
 class DepthNode:
     def __init__(self, p: dict):
         import rospy
-        import message_filters
-        from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+        from sensor_msgs.msg import Image, PointCloud2
         from ..depth import DEPTH_DEFAULTS, PoseCache
         self.p = p
         self.warn = Throttled()
@@ -114,20 +115,15 @@ class DepthNode:
 
         if p["calib"]:
             self.fixed_camera = self._load_calib(p["calib"])
-        self.pub_points = rospy.Publisher("/mdr/depth/points", PointCloud2, queue_size=2)
-        self.pub_image = (rospy.Publisher("/mdr/depth/image", Image, queue_size=2)
+        self.pub_points = rospy.Publisher("mdr/depth/points", PointCloud2, queue_size=2)
+        self.pub_image = (rospy.Publisher("mdr/depth/image", Image, queue_size=2)
                           if p["publish_depth_image"] else None)
-        subs = [message_filters.Subscriber("left/image", Image, queue_size=2, buff_size=1 << 24),
-                message_filters.Subscriber("right/image", Image, queue_size=2, buff_size=1 << 24)]
-        if self.fixed_camera is None:
-            subs += [message_filters.Subscriber("left/camera_info", CameraInfo, queue_size=5),
-                     message_filters.Subscriber("right/camera_info", CameraInfo, queue_size=5)]
-        if p["approximate_sync"]:
-            self.sync = message_filters.ApproximateTimeSynchronizer(subs, p["queue_size"], p["slop"])
-        else:
-            self.sync = message_filters.TimeSynchronizer(subs, p["queue_size"])
-        self.sync.registerCallback(self.on_images)
-        self.subs = subs
+        self.input = StereoInput("depth_node", self.on_images, self.warn,
+                                 float(p["sync_tolerance"]), str(p["image_transport"]),
+                                 with_info=self.fixed_camera is None,
+                                 queue_size=int(p["sync_queue_size"]))
+        if self.fixed_camera is not None:
+            self.fixed_camera = self._rectified(self.fixed_camera)
 
         self.tf_buffer = None
         self.pose_cache = PoseCache(max_gap=p["pose_max_gap"])
@@ -176,7 +172,7 @@ class DepthNode:
         rospy.loginfo("depth_node: %s, temporal=%s, pose from %s, listening on %s and %s",
                       "calib file" if self.fixed_camera is not None else "camera_info",
                       p["temporal"], "tf" if p["use_tf"] else p["pose_source_topic"],
-                      rospy.resolve_name("left/image"), rospy.resolve_name("right/image"))
+                      self.input.topics["left"], self.input.topics["right"])
 
     # ------------------------------------------------------------------ set-up helpers
     def _load_calib(self, path):
@@ -205,13 +201,22 @@ class DepthNode:
         key = (tuple(linfo.K), tuple(linfo.P), tuple(linfo.D), tuple(linfo.R), linfo.width,
                linfo.height, tuple(rinfo.K), tuple(rinfo.P), tuple(rinfo.D), tuple(rinfo.R))
         if key != self.camera_key:
-            cam = StereoCamera(camera_info_to_model(linfo), camera_info_to_model(rinfo))
+            cam = self._rectified(StereoCamera(camera_info_to_model(linfo),
+                                               camera_info_to_model(rinfo)))
             self.depth = StereoDepth(cam, self.depth_params)
             self.camera_key = key
             import rospy
             rospy.loginfo("depth_node: camera %dx%d fx=%.1f B=%.4f m%s%s", cam.size[0], cam.size[1],
                           cam.fx, cam.baseline, "" if cam.is_rectified else " (rectifying)",
                           " doffs=%+.3f px (right cx differs)" % cam.doffs if cam.doffs else "")
+
+    def _rectified(self, cam):
+        """``cam``, taken as rectified when the images already are (``~rectified``)."""
+        from ..camera import images_are_rectified
+        if images_are_rectified(self.p["rectified"], self.input.topics["left"], cam) and \
+                not cam.is_rectified:
+            return cam.assume_rectified()
+        return cam
 
     # ------------------------------------------------------------------ callbacks
     def on_images(self, left, right, linfo=None, rinfo=None):
@@ -357,7 +362,7 @@ class DepthNode:
     def process(self, left, right, linfo, rinfo, t_recv):
         """Stage 1 of one pair: stamp checks, camera, conversion, ELAS; queued for stage 2."""
         from ..camera import CalibrationError
-        from ..conversions import ConversionError, image_to_mono8
+        from ..conversions import ConversionError
         stamp = left.header.stamp
         t = stamp.to_sec()
         state = self.guard.check(t)
@@ -389,8 +394,8 @@ class DepthNode:
                 raise ConversionError("no camera_info and no calib file")
             self._camera_for(linfo, rinfo)
             key = "image"
-            L = image_to_mono8(left)
-            R = image_to_mono8(right)
+            L = to_mono8(left)
+            R = to_mono8(right)
             key = "size"
             if L.shape != R.shape:
                 raise ConversionError("left %s and right %s images differ in size" % (L.shape, R.shape))

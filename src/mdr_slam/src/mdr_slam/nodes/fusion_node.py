@@ -5,7 +5,7 @@ A thin shell around :class:`mdr_slam.fusion.VoxelMap` (paper section 3.4):
 * ``/mdr/depth/points`` (PointCloud2, camera frame) is paired with the camera pose at the cloud's
   stamp (the paper's time synchronisation): by default tf2 ``map <- cloud frame`` at that stamp
   (``~pose_source: tf``, waiting ``~tf_timeout`` s), or ``/mdr/pose`` through a message_filters
-  ApproximateTime synchroniser (``~pose_source: topic``, ``~sync_slop`` s).
+  ApproximateTime synchroniser (``~pose_source: topic``, ``~sync_tolerance`` s).
 * each cloud is anchored to the latest keyframe (``/mdr/keyframes``) not newer than it; when the
   pose node publishes corrected keyframe poses (local BA, loop closure) the map points follow.
 * ``/mdr/map/points`` (latched, ``~publish_rate`` Hz, voxel-downsampled for display: x, y, z,
@@ -42,15 +42,15 @@ from .health import ProcessHealth, update_diagnostics
 
 DEFAULTS = {
     "map_frame": "map",
-    "cloud_topic": "/mdr/depth/points",
-    "pose_topic": "/mdr/pose",
-    "keyframes_topic": "/mdr/keyframes",
-    "tracking_state_topic": "/mdr/tracking_state",   # "" = do not gate on tracking state
+    "cloud_topic": "mdr/depth/points",
+    "pose_topic": "mdr/pose",
+    "keyframes_topic": "mdr/keyframes",
+    "tracking_state_topic": "mdr/tracking_state",    # "" = do not gate on tracking state
     "pose_source": "tf",            # tf: tf2 map <- cloud frame at the stamp; topic: /mdr/pose
     "tf_timeout": 0.1,              # s to wait for the transform at the cloud's stamp
     "max_future_stamp": 1.0,        # s (sim time): clouds and tf stamped further ahead of the clock are dropped
-    "sync_slop": 0.05,              # s, ApproximateTime slop for pose_source=topic
-    "sync_queue": 30,
+    "sync_tolerance": 0.05,         # s between a cloud and its pose (pose_source=topic)
+    "sync_queue_size": 30,
     "cloud_queue": 10,              # clouds waiting while the node is busy (a keyframe correction,
                                     #   a map publish); older ones are dropped by rospy
     "anchor_keyframes": True,       # anchor points to keyframes so corrections move them
@@ -169,8 +169,8 @@ class FusionNode:
             except (IOError, OSError) as e:
                 rospy.logwarn("fusion_node: cannot write %s (%s): no resume after a crash",
                               self.marker, e)
-        self.pub_points = rospy.Publisher("/mdr/map/points", PointCloud2, queue_size=1, latch=True)
-        self.pub_grid = rospy.Publisher("/mdr/map/grid", OccupancyGrid, queue_size=1, latch=True)
+        self.pub_points = rospy.Publisher("mdr/map/points", PointCloud2, queue_size=1, latch=True)
+        self.pub_grid = rospy.Publisher("mdr/map/grid", OccupancyGrid, queue_size=1, latch=True)
         self.tf_buffer = tf2_ros.Buffer(cache_time=rospy.Duration(60.0))
         self.tf_listener = transform_listener(self.tf_buffer, self.p["max_future_stamp"], self.warn,
                                               "fusion_node")
@@ -182,7 +182,7 @@ class FusionNode:
                                                         queue_size=p["cloud_queue"], buff_size=big)
             self.sub_pose = message_filters.Subscriber(p["pose_topic"], PoseStamped, queue_size=50)
             self.sync = message_filters.ApproximateTimeSynchronizer(
-                [self.sub_cloud, self.sub_pose], p["sync_queue"], p["sync_slop"])
+                [self.sub_cloud, self.sub_pose], p["sync_queue_size"], p["sync_tolerance"])
             self.sync.registerCallback(self.on_cloud_pose)
         else:
             if p["pose_source"] != "tf":

@@ -10,18 +10,19 @@ import threading
 
 import numpy as np
 
-from .common import (ClockWatch, StampGuard, Throttled, get_params, parse_transform,
-                     skip_future_stamp)
+from .stereo_input import StereoInput, to_mono8
+from .common import (ClockWatch, StampGuard, Throttled, frame_root, get_params,
+                     parse_transform, skip_future_stamp, transform_listener)
 
 DEFAULTS = {
     "source": "orb",
     "map_frame": "map",
     "odom_frame": "odom",
     "base_frame": "base_link",
-    "camera_frame": "camera_left_optical_frame",
-    "base_to_camera": "",          # T_base_camera "x y z qx qy qz qw"; empty = identity
+    "camera_frame": "",            # empty: the left image's frame_id (groundtruth: DEFAULT_CAMERA_FRAME)
+    "base_to_camera": "",          # T_base_camera "x y z qx qy qz qw", published only when tf has none
     "publish_tf": True,
-    "publish_odom_tf": True,       # False: only map -> odom (robot odometry owns odom -> base)
+    "publish_odom_tf": "auto",     # auto: odom -> base_link unless the robot's odometry publishes it
     "path_max_length": 100000,
     "path_period": 0.5,            # /mdr/path at most this often (s): its size grows with the run
     "path_min_translation": 0.05,  # a pose joins /mdr/path once the camera moved this far (m) ...
@@ -29,8 +30,10 @@ DEFAULTS = {
     "blas_threads": 1,             # BLAS threads of this process (0: library default)
     "cv_threads": 1,               # OpenCV threads of this process (0: library default)
     "calib": "",                   # calibration file(s) instead of camera_info
+    "image_transport": "raw",      # raw (sensor_msgs/Image) or compressed (<image topic>/compressed)
+    "rectified": "auto",           # auto: image_rect* topics and distortion-free camera_info are rectified
     "sync_queue_size": 10,
-    "sync_slop": 0.0,              # 0 = exact stamps (TimeSynchronizer)
+    "sync_tolerance": 0.0,         # s between the stamps of a stereo pair; 0 = 0.4 of the frame period
     "max_pending": 2,              # stereo pairs waiting for the tracker; older ones are dropped
     "pipeline_frames": True,       # make frame N+1 (ORB, stereo) while frame N is being tracked
     "threads": True,
@@ -40,9 +43,38 @@ DEFAULTS = {
     "max_future_stamp": 1.0,       # s (sim time): pairs and poses stamped further ahead of the clock are dropped
 }
 
+DEFAULT_CAMERA_FRAME = "camera_left_optical_frame"   # the simulator's; when nothing names one
+BASE_TF_WAIT = 1.0        # s (wall) the first frame waits for tf base <- camera before a fallback ...
+BASE_TF_WAIT_GIVEN = 0.2  # ... and when ~base_to_camera gives one (then tf is only checked)
+MAP_ODOM_RATE = 20.0      # Hz: map -> odom re-sent (future-dated one period) with wheel odometry,
+                          # so tf stays valid while tracking is LOST or the camera stalls
+ODOM_LOOKUP_TIMEOUT = 0.05  # s to wait for the robot's odom -> base_link at an image stamp
+# /mdr/odom covariance (documented in the README): the tracker's pose is good to about a
+# centimetre and half a degree on the project's sequences (ATE 0.2-1 % of the path); twist from
+# consecutive poses, whose difference doubles the variance over one frame period
+POSE_STD_M = 0.02
+POSE_STD_RAD = 0.01
+TWIST_STD_MPS = 0.05
+TWIST_STD_RADPS = 0.05
+
+
+def _covariance(std_lin: float, std_ang: float):
+    c = np.zeros((6, 6))
+    c[:3, :3] = np.eye(3) * std_lin ** 2
+    c[3:, 3:] = np.eye(3) * std_ang ** 2
+    return c.ravel().tolist()
+
 
 class PoseRelay:
-    """Publishes a camera pose stream as pose, odometry, path and tf (map -> odom -> base_link)."""
+    """Publishes a camera pose stream as pose, odometry, path and tf (map -> odom -> base_link).
+
+    Frames follow REP-105 and the data: the camera frame is the image's frame_id, base -> camera
+    comes from tf (a URDF, robot_state_publisher, a bag's /tf_static); only when tf has none is
+    ``base_to_camera`` (else identity) published, attached to the root of the camera's tree so
+    no frame gets a second parent. With a robot publishing odom -> base_link (wheel odometry),
+    only map -> odom = T_map_base(t) T_odom_base(t)^-1 is published, at the image stamp and
+    re-sent at MAP_ODOM_RATE; otherwise map -> odom (loop-closure jumps) and odom -> base_link.
+    """
 
     def __init__(self, p: dict):
         import rospy
@@ -50,10 +82,11 @@ class PoseRelay:
         from geometry_msgs.msg import PoseStamped
         from nav_msgs.msg import Odometry, Path
         self.p = p
-        self.T_base_cam = parse_transform(p["base_to_camera"])
-        self.pub_pose = rospy.Publisher("/mdr/pose", PoseStamped, queue_size=10)
-        self.pub_odom = rospy.Publisher("/mdr/odom", Odometry, queue_size=10)
-        self.pub_path = rospy.Publisher("/mdr/path", Path, queue_size=1, latch=True)
+        self.T_base_cam = None             # known once the camera frame is resolved in tf
+        self.camera_frame = None
+        self.pub_pose = rospy.Publisher("mdr/pose", PoseStamped, queue_size=10)
+        self.pub_odom = rospy.Publisher("mdr/odom", Odometry, queue_size=10)
+        self.pub_path = rospy.Publisher("mdr/path", Path, queue_size=1, latch=True)
         self.tf = tf2_ros.TransformBroadcaster() if p["publish_tf"] else None
         self.static_tf = tf2_ros.StaticTransformBroadcaster() if p["publish_tf"] else None
         self.path = Path()
@@ -68,11 +101,82 @@ class PoseRelay:
         self.guard = StampGuard()
         self.clock = ClockWatch()          # ROS time jumping back (bag loop): a new timeline
         self.warn = Throttled()
-        if self.static_tf is not None:
-            from ..conversions import matrix_to_transform_stamped
-            self.static_tf.sendTransform(matrix_to_transform_stamped(
-                self.T_base_cam, rospy.Time(0), p["base_frame"], p["camera_frame"]))
+        mode = str(p.get("publish_odom_tf", "auto")).lower()
+        if mode not in ("auto", "true", "false"):
+            raise ValueError("publish_odom_tf must be auto, true or false, got %r" % mode)
+        self.odom_mode = mode
+        self.wheel_odom = False            # the robot's odometry owns odom -> base_link
+        self._last_odom_pose = None        # (stamp s, T_map_base) for the twist
+        self._last_map_odom = None         # T_map_odom re-sent by the timer (wheel odometry)
+        self.tf_buffer = tf2_ros.Buffer(cache_time=rospy.Duration(30.0))
+        self.tf_listener = transform_listener(self.tf_buffer, float(p["max_future_stamp"]),
+                                              self.warn, "pose_node", self._on_tf)
+        if self.tf is not None:
+            self._map_odom_timer = rospy.Timer(rospy.Duration(1.0 / MAP_ODOM_RATE),
+                                               self._resend_map_odom, reset=True)
         self._init_diagnostics()
+
+    # ------------------------------------------------------------------ frames
+    def _on_tf(self, tr, authority: str) -> None:
+        """The robot's odometry publishes odom -> base_link: leave it that transform."""
+        import rospy
+        if self.wheel_odom or self.odom_mode != "auto":
+            return
+        if tr.header.frame_id.lstrip("/") == self.p["odom_frame"] and \
+                tr.child_frame_id.lstrip("/") == self.p["base_frame"] and \
+                authority != rospy.get_name():
+            self.wheel_odom = True
+            rospy.loginfo("pose_node: %s publishes %s -> %s (wheel odometry): publishing only "
+                          "%s -> %s", authority, self.p["odom_frame"], self.p["base_frame"],
+                          self.p["map_frame"], self.p["odom_frame"])
+
+    def resolve_camera(self, frame: str) -> bool:
+        """Find T_base_cam for the camera frame ``frame`` (True once known). tf first, waiting up
+        to BASE_TF_WAIT s on the first frame (a bag's /tf_static, robot_state_publisher starting);
+        without it the user's ``base_to_camera`` or identity is published, from base to the root
+        of the camera's tree."""
+        import time
+        import rospy
+        import tf2_ros
+        from ..conversions import matrix_to_transform_stamped, transform_stamped_to_matrix
+        from ..geometry import inv_T
+        if self.T_base_cam is not None:
+            if frame != self.camera_frame:
+                self.warn("camframe", "pose_node: image frame_id %r differs from %r (the first "
+                          "one's); kept %r" % (frame, self.camera_frame, self.camera_frame))
+            return True
+        p = self.p
+        base = p["base_frame"]
+        given = bool(str(p["base_to_camera"]).strip())
+        deadline = time.monotonic() + (BASE_TF_WAIT_GIVEN if given else BASE_TF_WAIT)
+        while True:
+            try:
+                ts = self.tf_buffer.lookup_transform(base, frame, rospy.Time(0))
+                self.T_base_cam, self.camera_frame = transform_stamped_to_matrix(ts), frame
+                rospy.loginfo("pose_node: %s -> %s from tf", base, frame)
+                return True
+            except (tf2_ros.TransformException, rospy.ROSTimeMovedBackwardsException):
+                if time.monotonic() > deadline or rospy.is_shutdown():
+                    break
+                time.sleep(0.05)
+        T = parse_transform(p["base_to_camera"])
+        root = frame_root(self.tf_buffer, frame)
+        T_root = np.eye(4)
+        if root != frame:   # the camera has a tree of its own (e.g. a driver's): attach its root
+            try:
+                T_root = transform_stamped_to_matrix(self.tf_buffer.lookup_transform(
+                    root, frame, rospy.Time(0), rospy.Duration(0.05)))
+            except tf2_ros.TransformException:
+                pass
+        self.T_base_cam, self.camera_frame = T, frame
+        if self.static_tf is not None and root != base:
+            self.static_tf.sendTransform(matrix_to_transform_stamped(
+                T @ inv_T(T_root), rospy.Time(0), base, root))
+        (rospy.loginfo if given else rospy.logwarn)(
+            "pose_node: no tf %s <- %s: publishing %s -> %s from %s", base, frame, base, root,
+            "~base_to_camera" if given else "identity (no ~base_to_camera: the map frame is the "
+            "first camera pose)")
+        return True
 
     def from_the_future(self, t: float, what: str) -> bool:
         """A message stamped ahead of the clock (the old lap's last ones after a bag loop): its
@@ -173,13 +277,74 @@ class PoseRelay:
         self._path_last = T.copy()
         return True
 
-    def publish(self, stamp, T_map_cam: np.ndarray, T_map_odom: np.ndarray = None) -> None:
+    def _odom_base_at(self, stamp):
+        """The robot's T_odom_base at ``stamp`` (None, with a warning, when tf has none)."""
+        import rospy
+        import tf2_ros
+        from ..conversions import transform_stamped_to_matrix
+        try:
+            return transform_stamped_to_matrix(self.tf_buffer.lookup_transform(
+                self.p["odom_frame"], self.p["base_frame"], stamp,
+                rospy.Duration(ODOM_LOOKUP_TIMEOUT)))
+        except (tf2_ros.TransformException, rospy.ROSTimeMovedBackwardsException) as e:
+            self.warn("odomtf", "pose_node: no %s <- %s at %.3f (%s); map -> odom kept"
+                      % (self.p["odom_frame"], self.p["base_frame"], stamp.to_sec(),
+                         str(e).splitlines()[0] if str(e) else type(e).__name__))
+            return None
+
+    def _resend_map_odom(self, _event=None) -> None:
+        """Wheel odometry: the last map -> odom again, future-dated by one period (as amcl
+        does), so lookups at the current time succeed while no image is tracked."""
+        import rospy
+        from ..conversions import matrix_to_transform_stamped
+        T = self._last_map_odom
+        if T is None or self.tf is None:
+            return
+        stamp = rospy.Time.now() + rospy.Duration(1.0 / MAP_ODOM_RATE)
+        self.tf.sendTransform(matrix_to_transform_stamped(T, stamp, self.p["map_frame"],
+                                                          self.p["odom_frame"]))
+
+    def _odometry(self, stamp, T_map_base, T_map_odom):
+        """/mdr/odom: the visual pose of base_link with covariance and twist (robot_localization
+        reads both). In odom (continuous) without wheel odometry; in map with it, where the
+        visual pose is the information the wheels lack."""
         from nav_msgs.msg import Odometry
-        from ..conversions import matrix_to_pose, matrix_to_pose_stamped, matrix_to_transform_stamped
+        from ..conversions import matrix_to_pose
+        from ..geometry import body_twist, inv_T
+        p = self.p
+        odom = Odometry()
+        odom.header.stamp = stamp
+        odom.child_frame_id = p["base_frame"]
+        if self.wheel_odom:
+            odom.header.frame_id, T = p["map_frame"], T_map_base
+        else:
+            odom.header.frame_id, T = p["odom_frame"], inv_T(T_map_odom) @ T_map_base
+        odom.pose.pose = matrix_to_pose(T)
+        odom.pose.covariance = _covariance(POSE_STD_M, POSE_STD_RAD)
+        t = stamp.to_sec()
+        last = self._last_odom_pose
+        if last is not None and 0 < t - last[0] < 1.0:
+            v, w = body_twist(last[1], T_map_base, t - last[0])
+            odom.twist.twist.linear.x, odom.twist.twist.linear.y, odom.twist.twist.linear.z = v
+            odom.twist.twist.angular.x, odom.twist.twist.angular.y, odom.twist.twist.angular.z = w
+            odom.twist.covariance = _covariance(TWIST_STD_MPS, TWIST_STD_RADPS)
+        else:   # no previous pose close in time: the twist is unknown
+            odom.twist.covariance = _covariance(1e3, 1e3)
+        self._last_odom_pose = (t, T_map_base)
+        self.pub_odom.publish(odom)
+
+    def publish(self, stamp, T_map_cam: np.ndarray, T_map_odom: np.ndarray = None) -> None:
+        """One camera pose ``T_map_cam`` at ``stamp``. ``T_map_odom``: the tracker's map -> odom
+        (loop-closure jumps) when the pose node owns odom -> base_link."""
+        from ..conversions import matrix_to_pose_stamped, matrix_to_transform_stamped
         from ..geometry import inv_T, is_valid_T
         p = self.p
         if not is_valid_T(T_map_cam):
             self.warn("nan", "pose at %.3f is not a finite rigid transform; skipped" % stamp.to_sec())
+            return
+        if self.T_base_cam is None:
+            self.warn("nobase", "pose at %.3f before the camera frame is known; skipped"
+                      % stamp.to_sec())
             return
         if self.from_the_future(stamp.to_sec(), "pose"):
             return
@@ -193,20 +358,33 @@ class PoseRelay:
             with self._path_lock:
                 del self.path.poses[:]
             self._path_last = None
+            self._last_odom_pose = None
         if state == "duplicate":
             self.warn("dup", "duplicate pose stamp %.3f; skipped" % stamp.to_sec())
             return
+        if self.odom_mode == "auto" and not self.wheel_odom and self.tf is not None and \
+                self.n_published == 0 and self.tf_buffer.can_transform(
+                    p["odom_frame"], p["base_frame"], stamp):
+            self.wheel_odom = True   # tf had it before this node published any: the robot's
         ps = matrix_to_pose_stamped(T_map_cam, stamp, p["map_frame"])
         self.pub_pose.publish(ps)
         T_map_base = T_map_cam @ inv_T(self.T_base_cam)
         T_map_odom = np.eye(4) if T_map_odom is None else T_map_odom
-        T_odom_base = inv_T(T_map_odom) @ T_map_base
-        odom = Odometry()
-        odom.header.stamp = stamp
-        odom.header.frame_id = p["odom_frame"]
-        odom.child_frame_id = p["base_frame"]
-        odom.pose.pose = matrix_to_pose(T_odom_base)   # map -> odom is identity for the relay
-        self.pub_odom.publish(odom)
+        own_odom = not self.wheel_odom and self.odom_mode != "false"
+        tfs = []
+        if self.wheel_odom:
+            T_odom_base = self._odom_base_at(stamp)
+            if T_odom_base is not None:
+                self._last_map_odom = T_map_base @ inv_T(T_odom_base)
+                tfs.append(matrix_to_transform_stamped(self._last_map_odom, stamp,
+                                                       p["map_frame"], p["odom_frame"]))
+        else:
+            tfs.append(matrix_to_transform_stamped(T_map_odom, stamp, p["map_frame"],
+                                                   p["odom_frame"]))
+            if own_odom:
+                tfs.append(matrix_to_transform_stamped(inv_T(T_map_odom) @ T_map_base, stamp,
+                                                       p["odom_frame"], p["base_frame"]))
+        self._odometry(stamp, T_map_base, T_map_odom)
         if self._path_step(T_map_cam):
             with self._path_lock:
                 self.path.header.stamp = stamp
@@ -215,11 +393,7 @@ class PoseRelay:
                     del self.path.poses[: len(self.path.poses) - p["path_max_length"]]
                 self._path_dirty = True
             self._flush_path(throttled=True)
-        if self.tf is not None:
-            tfs = [matrix_to_transform_stamped(T_map_odom, stamp, p["map_frame"], p["odom_frame"])]
-            if p.get("publish_odom_tf", True):
-                tfs.append(matrix_to_transform_stamped(T_odom_base, stamp, p["odom_frame"],
-                                                       p["base_frame"]))
+        if self.tf is not None and tfs:
             self.tf.sendTransform(tfs)
         import rospy
         self.n_published += 1
@@ -280,11 +454,9 @@ class OrbNode:
     PoseRelay (pose, odom, path, tf), /mdr/tracking_state, /mdr/keyframes, ~save_trajectory."""
 
     def __init__(self, p: dict, relay: PoseRelay):
-        import message_filters
         import rospy
         from mdr_slam_msgs.msg import KeyFrameArray, TrackingState
         from mdr_slam_msgs.srv import SaveTrajectory
-        from sensor_msgs.msg import CameraInfo, Image
         from ..pose.system import DEFAULT_PARAMS
         self.p = p
         self.tracker_params = get_params(DEFAULT_PARAMS)   # the tracker's keys of pose.yaml
@@ -299,24 +471,14 @@ class OrbNode:
         self.last_state = "NOT_INITIALIZED"
         self.clock = ClockWatch()          # ROS time jumping back (bag loop): a new timeline
         self.lock = threading.Lock()
-        self.pub_state = rospy.Publisher("/mdr/tracking_state", TrackingState, queue_size=10)
-        self.pub_kfs = rospy.Publisher("/mdr/keyframes", KeyFrameArray, queue_size=10, latch=True)
+        self.pub_state = rospy.Publisher("mdr/tracking_state", TrackingState, queue_size=10)
+        self.pub_kfs = rospy.Publisher("mdr/keyframes", KeyFrameArray, queue_size=10, latch=True)
         self.srv = rospy.Service("~save_trajectory", SaveTrajectory, self.on_save)
-        qs = int(p["sync_queue_size"])
-        subs = [message_filters.Subscriber("left/image", Image, queue_size=qs),
-                message_filters.Subscriber("right/image", Image, queue_size=qs)]
         if p["calib"]:
-            from ..calib import load_stereo_calibration   # written by another worker; lazy
+            from ..calib import load_stereo_calibration
             self.camera = load_stereo_calibration(p["calib"])
             rospy.loginfo("pose_node: calibration from %s (baseline %.4f m)", p["calib"],
                           self.camera.baseline)
-        else:
-            subs += [message_filters.Subscriber("left/camera_info", CameraInfo, queue_size=qs),
-                     message_filters.Subscriber("right/camera_info", CameraInfo, queue_size=qs)]
-        if float(p["sync_slop"]) > 0:
-            self.sync = message_filters.ApproximateTimeSynchronizer(subs, qs, float(p["sync_slop"]))
-        else:
-            self.sync = message_filters.TimeSynchronizer(subs, qs)
         # the callbacks only hand the newest pairs to the frame thread (LatestSlot): a pair
         # arriving while it is busy replaces the oldest waiting one instead of queueing. With
         # pipeline_frames that thread makes the Frame (ORB on both images, stereo matching: no map
@@ -332,11 +494,26 @@ class OrbNode:
             self.tracker = threading.Thread(target=self._serve, args=(self.frames, self.track),
                                             name="tracking", daemon=True)
             self.tracker.start()
-        self.sync.registerCallback(self.on_stereo)
-        rospy.loginfo("pose_node: ORB tracking on %s + %s", rospy.resolve_name("left/image"),
-                      rospy.resolve_name("right/image"))
+        self.input = StereoInput("pose_node", self.on_stereo, self.warn,
+                                 float(p["sync_tolerance"]), str(p["image_transport"]),
+                                 with_info=not p["calib"], queue_size=int(p["sync_queue_size"]))
+        if self.camera is not None:
+            self.camera = self._rectified(self.camera)
+        rospy.loginfo("pose_node: ORB tracking on %s + %s", self.input.topics["left"],
+                      self.input.topics["right"])
 
     # ------------------------------------------------------------------ input
+    def _rectified(self, cam):
+        """``cam``, taken as rectified when the images already are (``rectified`` switch)."""
+        from ..camera import images_are_rectified
+        if images_are_rectified(self.p["rectified"], self.input.topics["left"], cam) and \
+                not cam.is_rectified:
+            import rospy
+            rospy.loginfo("pose_node: %s is rectified already: its camera_info's distortion and "
+                          "R are not applied again", self.input.topics["left"])
+            return cam.assume_rectified()
+        return cam
+
     def _camera_from_info(self, li, ri):
         from ..camera import CalibrationError, StereoCamera
         from ..conversions import camera_info_to_model
@@ -352,7 +529,7 @@ class OrbNode:
                 with self.lock:   # not while the tracking thread is on a frame
                     self.system.shutdown()
                     self.system = None
-            self.camera, self.info_key = cam, key
+            self.camera, self.info_key = self._rectified(cam), key
             if cam.doffs:
                 import rospy
                 rospy.loginfo("pose_node: the right principal point is %+.3f px from the left's "
@@ -360,8 +537,7 @@ class OrbNode:
         return self.camera
 
     def _to_mono8(self, msg):
-        from ..conversions import image_to_mono8
-        return image_to_mono8(msg)   # refuses 16UC1/32FC1 (depth images) and malformed data
+        return to_mono8(msg)   # refuses 16UC1/32FC1 (depth images) and malformed data
 
     def on_stereo(self, left_msg, right_msg, left_info=None, right_info=None):
         if self.relay.from_the_future(left_msg.header.stamp.to_sec(), "stereo"):
@@ -401,6 +577,9 @@ class OrbNode:
             self.warn("size", "image sizes %s/%s differ from the calibration %dx%d; skipped"
                       % (left.shape[::-1], right.shape[::-1], w, h))
             return
+        frame_id = self.p["camera_frame"] or left_msg.header.frame_id or DEFAULT_CAMERA_FRAME
+        if not self.relay.resolve_camera(frame_id):
+            return
         t = stamp.to_sec()
         jumped = self.clock.jumped()
         if self.last_stamp is not None and t == self.last_stamp:
@@ -422,7 +601,7 @@ class OrbNode:
             from ..pose import System, make_system
             with self.lock:
                 # REP-105: map is base_link where tracking starts (z up for a level robot);
-                # base_to_camera identity (its default) keeps map = the first camera's frame
+                # without any base -> camera transform, map is the first camera's frame
                 args = dict(threads=bool(self.p["threads"]), T_map_cam0=self.relay.T_base_cam)
                 try:
                     self.system = make_system(cam, self.tracker_params, **args)
@@ -587,7 +766,8 @@ def main():
             except ConversionError as e:
                 relay.warn("bad", "ground-truth pose skipped: %s" % e)
                 return
-            relay.publish(msg.header.stamp, T)
+            if relay.resolve_camera(p["camera_frame"] or DEFAULT_CAMERA_FRAME):
+                relay.publish(msg.header.stamp, T)
         rospy.Subscriber("ground_truth_pose", PoseStamped, on_gt, queue_size=100)
         rospy.loginfo("pose_node: relaying ground truth from %s",
                       rospy.resolve_name("ground_truth_pose"))

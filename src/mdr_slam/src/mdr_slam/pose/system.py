@@ -115,7 +115,8 @@ _REASONS = {"local_ba": 1, "loop_closure": 2}
 # the runner can pass the whole file)
 NODE_KEYS = {"source", "map_frame", "odom_frame", "base_frame", "camera_frame", "base_to_camera",
              "publish_tf", "publish_odom_tf", "path_max_length", "calib", "trajectory_path",
-             "trajectory_format", "sync_queue_size", "sync_slop", "threads", "path_period",
+             "trajectory_format", "sync_queue_size", "sync_tolerance", "image_transport",
+             "rectified", "threads", "path_period",
              "max_pending", "blas_threads", "cv_threads", "diagnostics_period", "path_min_translation",
              "path_min_rotation_deg", "pipeline_frames", "max_future_stamp"}
 
