@@ -2,6 +2,13 @@
 
     mdr sim --scene office --duration 30 --out DIR [--seed 0] [--rate 20] [--distort]
             [--contrast C] [--no-specular] [--noise S] [--save-depth [EVERY]] [--max-range 8]
+            [--driver zed|realsense|stereo_image_proc [--compressed jpeg|png]
+             [--right-lag MS] [--no-odom] [--odom-drift SCALE YAW_DEG_PER_M] [--odom-rate HZ]]
+
+Without --driver the bag holds mono8 pairs, camera_info, /ground_truth/pose and /tf map ->
+ground_truth_camera. With --driver it holds only what that camera driver and a wheeled base record
+(mdr_slam.sim.driver; topics, frames and T_base_cam in DIR/driver.yaml); the ground truth stays in
+groundtruth.tum, gt_map.ply and scene.yaml.
 """
 from __future__ import annotations
 
@@ -48,6 +55,34 @@ def add_parser(subparsers, name: str = "sim", help_text: str = ""):
     p.add_argument("--workers", type=int, default=None,
                    help="render processes (default: min(2, CPUs))")
     p.add_argument("--quiet", action="store_true", help="no progress output")
+    g = p.add_argument_group(
+        "driver-like bags", "record the bag as a real driver on a wheeled base would (no ground "
+        "truth in it; DIR/driver.yaml lists topics, frames and T_base_cam)")
+    g.add_argument("--driver", default="none",
+                   choices=["none", "zed", "realsense", "stereo_image_proc"],
+                   help="zed: bgr8 /zed/zed_node/*/image_rect_color; realsense: mono8 "
+                        "/camera/infra{1,2}/image_rect_raw; stereo_image_proc: mono8 "
+                        "/stereo/*/image_rect with a raw calibration in camera_info "
+                        "(default none: the ground-truth bag)")
+    g.add_argument("--compressed", choices=["jpeg", "png"], default=None,
+                   help="images as sensor_msgs/CompressedImage on <topic>/compressed "
+                        "(default: raw Image)")
+    g.add_argument("--jpeg-quality", type=int, default=80, metavar="Q",
+                   help="jpeg quality with --compressed jpeg (default 80, as "
+                        "compressed_image_transport)")
+    g.add_argument("--right-lag", type=float, default=None, metavar="MS",
+                   help="right image stamps this many ms after the left (default: zed 3, "
+                        "others 0)")
+    g.add_argument("--odom", dest="odom", action="store_true", default=True,
+                   help="wheel odometry on /odom and /tf odom -> base_link (default)")
+    g.add_argument("--no-odom", dest="odom", action="store_false", help="no wheel odometry")
+    g.add_argument("--odom-drift", type=float, nargs=2, default=[0.02, 1.0],
+                   metavar=("SCALE", "YAW_DEG_PER_M"),
+                   help="odometry's systematic error: translation scale error and yaw drift in "
+                        "degrees per metre travelled (default 0.02 1.0: 2%% long, 1 deg/m "
+                        "counter-clockwise)")
+    g.add_argument("--odom-rate", type=float, default=50.0, metavar="HZ",
+                   help="odometry rate on its own clock (default 50; 0: at the image stamps)")
     p.set_defaults(func=run)
     return p
 
@@ -65,14 +100,26 @@ def run(args) -> int:
             last[0] = time.time()
             print("  frame %d/%d" % (i, n), file=sys.stderr)
 
+    kwargs = dict(scene=args.scene, duration=args.duration, seed=args.seed,
+                  rate=args.rate, distort=args.distort, contrast=args.contrast,
+                  specular=args.specular, noise=args.noise, save_depth=args.save_depth,
+                  max_range=args.max_range, scale=args.scale, trajectory=args.trajectory,
+                  exposure=args.exposure, blur=args.blur, workers=args.workers,
+                  map_cell=args.map_cell, progress=progress)
+    driver = getattr(args, "driver", "none")
+    if driver == "none" and (args.compressed or args.right_lag is not None):
+        print("mdr sim: --compressed and --right-lag need --driver", file=sys.stderr)
+        return 2
     try:
-        s = generate(args.out, scene=args.scene, duration=args.duration, seed=args.seed,
-                     rate=args.rate, distort=args.distort, contrast=args.contrast,
-                     specular=args.specular, noise=args.noise, save_depth=args.save_depth,
-                     max_range=args.max_range, scale=args.scale, trajectory=args.trajectory,
-                     exposure=args.exposure, blur=args.blur, workers=args.workers,
-                     map_cell=args.map_cell,
-                     progress=progress)
+        if driver == "none":
+            s = generate(args.out, **kwargs)
+        else:
+            from ..sim.driver import generate_driver
+            s = generate_driver(args.out, driver, compressed=args.compressed,
+                                jpeg_quality=args.jpeg_quality, right_lag_ms=args.right_lag,
+                                odom=args.odom, odom_scale_error=args.odom_drift[0],
+                                odom_yaw_drift=args.odom_drift[1], odom_rate=args.odom_rate,
+                                **kwargs)
     except ValueError as e:
         print("mdr sim: %s" % e, file=sys.stderr)
         return 2
@@ -82,4 +129,10 @@ def run(args) -> int:
                                     "raw distorted" if args.distort else "rectified",
                                     s["out_dir"], s["n_map_points"], t["wall_s"],
                                     t["render_ms_per_frame_median"], t["workers"]))
+    if driver != "none":
+        d = s["driver"]
+        print("  driver %s (%s images): %s, %s; right lag %g ms; odometry %s\n  %s" % (
+            driver, d["compressed_format"] or "raw", d["bag_topics"]["left_image"],
+            d["bag_topics"]["right_image"], d["right_lag_ms"],
+            "on /odom" if d["odometry"]["enabled"] else "off", s["driver_yaml"]))
     return 0

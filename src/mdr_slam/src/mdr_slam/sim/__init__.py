@@ -8,6 +8,7 @@ a specular band, corridor cornering, pure rotation), rendered by exact ray casti
     stamps, Ts = make_trajectory(scene, duration=10.0, rate=20.0)
     frame = Simulator(scene, sim_camera(scale=0.25)).render(Ts[0])   # left, right, depth, surface
     generate("/tmp/office", scene="office", duration=30.0)            # bag + ground truth files
+    generate_driver("/tmp/zed", "zed", compressed="jpeg", duration=30.0)  # as a ZED robot records
 """
 from __future__ import annotations
 
@@ -16,7 +17,8 @@ from .scene import (LABELS, LABEL_LOW_TEXTURE, LABEL_NONE, LABEL_SPECULAR, LABEL
 from .trajectory import KINDS, SimTrajectory, build_trajectory, make_trajectory
 from .render import Simulator, sim_camera
 from .generate import generate
+from .driver import DRIVERS, generate_driver
 
 __all__ = ["make_scene", "make_trajectory", "build_trajectory", "Simulator", "generate",
-           "sim_camera", "Scene", "Rect", "SimTrajectory", "SCENES", "KINDS", "LABELS",
+           "generate_driver", "DRIVERS", "sim_camera", "Scene", "Rect", "SimTrajectory", "SCENES", "KINDS", "LABELS",
            "LABEL_NONE", "LABEL_LOW_TEXTURE", "LABEL_TEXTURED", "LABEL_SPECULAR"]

@@ -7,7 +7,8 @@ writes the bag in frame order and accumulates the ground-truth map.
 Outputs in ``out_dir``: ``sequence.bag`` (mono8 stereo + camera_info, /ground_truth/pose, /tf),
 ``groundtruth.tum``, ``gt_map.ply`` (1 cm cells of every surface the left camera saw within
 ``max_range``: x y z nx ny nz surface), optional ``gt_depth/%06d.npz`` (depth, surface) and
-``scene.yaml`` (camera, scene, seed, segments, label legend, timing).
+``scene.yaml`` (camera, scene, seed, segments, label legend, timing). A ``frame_writer`` hook
+replaces the bag's content (:mod:`.driver` writes it the way a camera driver records).
 
 Every pose (bag ``/ground_truth/pose`` and ``/tf`` map -> ground_truth_camera, TUM file) is the
 RECTIFIED left optical frame in ``map``; with ``distort=True`` the raw left camera is rotated
@@ -81,6 +82,26 @@ class _MapCells:
                             surface=L)
 
 
+class _GroundTruthBagWriter:
+    """The default bag: mono8 stereo + camera_info on the default topics, /ground_truth/pose and
+    /tf map -> ground_truth_camera at every frame stamp."""
+
+    def __init__(self, bag_path, camera, stamps, Ts, traj):
+        from ..bagio import StereoBagWriter
+        self.bag = StereoBagWriter(bag_path)
+        self.camera, self.stamps, self.Ts = camera, stamps, Ts
+
+    def write(self, i: int, left: np.ndarray, right: np.ndarray) -> None:
+        self.bag.write_stereo(float(self.stamps[i]), left, right, self.camera)
+        self.bag.write_ground_truth(float(self.stamps[i]), self.Ts[i])
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.bag.close()
+
+
 def _exposure_gains(n: int, rate: float, seed: int, enabled: bool) -> np.ndarray:
     """Per-frame exposure gain: smooth auto-exposure drift (+-20%), deterministic per seed."""
     if not enabled:
@@ -133,17 +154,22 @@ def generate(out_dir: str, scene="office", duration: float = 30.0, seed: int = 0
              max_range: float = 8.0, camera=None, scale: float = 1.0, trajectory=None,
              exposure: bool = False, blur: int = 0, blur_time: float = 0.01,
              workers: Optional[int] = None, map_cell: float = 0.01,
-             progress: Optional[Callable[[int, int], None]] = None) -> dict:
+             progress: Optional[Callable[[int, int], None]] = None,
+             frame_writer: Optional[Callable] = None) -> dict:
     """Render a sequence to ``out_dir``; returns a summary dict (paths, counts, timing).
 
     ``scene`` is a name or a :class:`Scene`; ``trajectory`` a kind (default: the scene's);
     ``save_depth`` = N writes gt_depth for every N-th frame (0: none); ``blur`` = K averages K
     sub-poses over ``blur_time`` s centred on each stamp; ``exposure`` varies the gain;
     ``camera`` overrides the EuRoC-like default (``scale`` shrinks it, ``distort`` = raw images).
+
+    ``frame_writer(bag_path, camera, stamps, Ts, traj)`` replaces the default bag content
+    (images + ground truth, :class:`_GroundTruthBagWriter`): a context manager whose
+    ``write(i, left, right)`` gets the rendered frames in order and whose optional ``summary()``
+    returns entries that update the returned summary and scene.yaml (see :mod:`.driver`).
     """
     import multiprocessing
     import yaml
-    from ..bagio import StereoBagWriter
     from ..io import Trajectory, write_cloud, write_tum
     from ..io.atomic import atomic_write
 
@@ -202,11 +228,11 @@ def generate(out_dir: str, scene="office", duration: float = 30.0, seed: int = 0
             results = pool.imap(_render_frame, range(n), chunksize=2)
         else:
             results = (_render_frame(i) for i in range(n))
-        with StereoBagWriter(bag_path) as bag:
+        make_writer = frame_writer if frame_writer is not None else _GroundTruthBagWriter
+        with make_writer(bag_path, cam, stamps, Ts, traj) as bag:
             for i, left, right, keys, ms in results:
                 tw = time.perf_counter()
-                bag.write_stereo(float(stamps[i]), left, right, cam)
-                bag.write_ground_truth(float(stamps[i]), Ts[i])
+                bag.write(i, left, right)
                 mark[keys] = True
                 render_ms[i] = ms
                 t_write += time.perf_counter() - tw
@@ -261,6 +287,9 @@ def generate(out_dir: str, scene="office", duration: float = 30.0, seed: int = 0
                    "render_ms_per_frame_median": round(float(np.median(render_ms)), 2),
                    "bag_write_s": round(t_write, 3)},
     }
+    extra = getattr(bag, "summary", None)
+    if extra is not None:
+        summary.update(extra())
     atomic_write(os.path.join(out_dir, "scene.yaml"),
                  yaml.safe_dump(summary, sort_keys=False, default_flow_style=None), "w")
     summary.update(out_dir=out_dir, bag=bag_path, groundtruth=tum_path, gt_map=map_path,
