@@ -204,11 +204,22 @@ def image_descriptor_sets(images: Iterable[np.ndarray], n_features: int = 1000) 
 
 
 def default_vocabulary_path() -> str:
-    """src/mdr_slam/data/orb_vocab.npz: the catkin package's data folder (four levels above this
-    module: src/mdr_slam/src/mdr_slam/pose/vocabulary.py)."""
+    """data/orb_vocab.npz of the catkin package: src/mdr_slam/data in the source and devel
+    layouts (the package four levels above src/mdr_slam/src/mdr_slam/pose/vocabulary.py), else
+    share/mdr_slam/data found through the ROS package path (an install space, where this module
+    sits in lib/python3/dist-packages). Without either, the user cache ~/.cache/mdr_slam."""
     here = os.path.dirname(os.path.abspath(__file__))
     pkg = os.path.dirname(os.path.dirname(os.path.dirname(here)))
-    return os.path.join(pkg, "data", "orb_vocab.npz")
+    if os.path.isfile(os.path.join(pkg, "package.xml")):
+        return os.path.join(pkg, "data", "orb_vocab.npz")
+    try:
+        import rospkg
+        return os.path.join(rospkg.RosPack().get_path("mdr_slam"), "data", "orb_vocab.npz")
+    except ImportError:
+        pass
+    except rospkg.ResourceNotFound:  # mdr_slam not on ROS_PACKAGE_PATH (library used without ROS)
+        pass
+    return os.path.join(os.path.expanduser("~"), ".cache", "mdr_slam", "orb_vocab.npz")
 
 
 def load_vocabulary(path: Optional[str] = None) -> ORBVocabulary:
