@@ -69,7 +69,7 @@ def kitti(d):
 
 def bag_frames(path, n):
     from mdr_slam.pipeline import frames_from_bag
-    cam, it = frames_from_bag(path, max_frames=n)
+    cam, it = frames_from_bag(path, max_frames=n, ground_truth=True)
     frames, stamps, Ts = [], [], []
     for f in it:
         if f.T_map_cam_gt is None:

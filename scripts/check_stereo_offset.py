@@ -45,7 +45,7 @@ def main(argv=None) -> int:
         cam, frames = frames_from_dataset("kitti" if a.kitti else "euroc", a.kitti or a.euroc,
                                           max_frames=a.max_frames)
     elif a.bag:
-        cam, frames = frames_from_bag(a.bag, max_frames=a.max_frames)
+        cam, frames = frames_from_bag(a.bag, max_frames=a.max_frames, ground_truth=True)
     else:
         ap.error("give a bag, --kitti or --euroc")
     if a.doffs is not None:

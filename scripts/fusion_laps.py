@@ -35,7 +35,7 @@ def build_cache(bag, path, passes=6, keep=0.65, seed=0):
     drops the rest), so every pass gives different clouds, as a live loop does."""
     from mdr_slam.depth import StereoDepth
     from mdr_slam.pipeline import frames_from_bag, load_params
-    cam, frames = frames_from_bag(bag)
+    cam, frames = frames_from_bag(bag, ground_truth=True)
     frames = [f for f in frames if f.T_map_cam_gt is not None]
     sd = StereoDepth(cam, load_params("depth", "sample"))
     dur = frames[-1].stamp - frames[0].stamp + 0.05

@@ -258,7 +258,7 @@ def test_import_euroc_bag_is_readable_and_rectifies_rows(tmp_path):
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert "no image" in r.stderr and "95 stereo pairs, 74 ground-truth poses" in r.stderr
-    frames = list(read_stereo_frames(out))
+    frames = list(read_stereo_frames(out, with_ground_truth=True))
     assert len(frames) == 95
     assert all(f.left_info is not None and f.right_info is not None for f in frames)
     assert sum(f.T_map_cam_gt is not None for f in frames) == 74
@@ -287,7 +287,7 @@ def test_import_kitti_bag(tmp_path):
     r = subprocess.run(["mdr", "import", "kitti", d, out, "--max-frames", "20",
                         "--doffs", "-0.2"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
-    frames = list(read_stereo_frames(out))
+    frames = list(read_stereo_frames(out, with_ground_truth=True))
     assert len(frames) == 20
     assert frames[0].stamp == pytest.approx(1.0) and frames[1].stamp == pytest.approx(1.1044989)
     cam = StereoCamera(frames[0].left_info, frames[0].right_info)

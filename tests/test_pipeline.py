@@ -41,9 +41,9 @@ def test_mdr_run_writes_map_trajectory_and_summary(small_sim, tmp_path):
     from mdr_slam.eval import map_metrics
     out = str(tmp_path / "run")
     _mdr("run", os.path.join(small_sim, "sequence.bag"), "--out", out, "--quiet", "--max-frames",
-         "60", *SMALL)
+         "60", "--pose-source", "groundtruth", *SMALL)
     s = json.load(open(os.path.join(out, "summary.json")))
-    assert s["pose_source"] == "groundtruth"   # chosen because the bag has ground truth
+    assert s["pose_source"] == "groundtruth"
     assert s["frames_in"] == s["frames_posed"] == 60
     assert s["frames_integrated"] > 40
     for stage in ("depth", "depth.elas", "depth.filter", "fusion", "frame"):
@@ -61,6 +61,82 @@ def test_mdr_run_writes_map_trajectory_and_summary(small_sim, tmp_path):
     assert m["accuracy_rmse"] < 0.10          # half resolution: 2x coarser disparities
     assert m["accuracy"] > 0.8
     assert m["completeness"] > 0.02           # the ground-truth map covers all 30 s
+
+
+@pytest.fixture(scope="module")
+def tiny_sim(tmp_path_factory):
+    """1 s of the office loop at quarter resolution (188x120, 20 Hz, 20 frames, ground truth)."""
+    from mdr_slam.sim import generate
+    d = str(tmp_path_factory.mktemp("tiny"))
+    generate(d, scene="office", duration=1.0, seed=1, rate=20.0, scale=0.25, workers=1,
+             map_cell=0.05)
+    return d
+
+
+def _driver_bag(src, dst, seed=0):
+    """``src`` re-recorded as a camera driver and ``rosbag record`` make it: png-compressed
+    images on /cam/{left,right}/image_raw/compressed, the right stamped 3 ms after the left, each
+    camera_info after its image, messages in receive order (stamp + 5..65 ms: the bag's order is
+    not the stamps'), no ground truth."""
+    import genpy
+    import rosbag
+    from mdr_slam import conversions as cv
+    rng = np.random.default_rng(seed)
+    recs = []
+    with rosbag.Bag(src) as bag:
+        for topic, msg, _ in bag.read_messages(topics=[
+                "/stereo/left/image_raw", "/stereo/right/image_raw",
+                "/stereo/left/camera_info", "/stereo/right/camera_info"]):
+            side = "left" if "/left/" in topic else "right"
+            stamp = msg.header.stamp + genpy.Duration.from_sec(0.003 if side == "right" else 0)
+            t_rx = stamp.to_sec() + 0.005 + rng.uniform(0, 0.06)
+            if topic.endswith("image_raw"):
+                recs.append((t_rx, "/cam/%s/image_raw/compressed" % side,
+                             cv.numpy_to_compressed_image(cv.image_to_mono8(msg), "png", stamp)))
+            else:
+                msg.header.stamp = stamp
+                recs.append((t_rx + 0.07, "/cam/%s/camera_info" % side, msg))   # after the image
+    with rosbag.Bag(dst, "w") as bag:
+        for t_rx, topic, msg in sorted(recs, key=lambda r: r[0]):
+            bag.write(topic, msg, genpy.Time.from_sec(t_rx))
+    return dst
+
+
+def test_mdr_run_maps_a_driver_bag(tiny_sim, tmp_path):
+    """Compressed images on the driver's topics, camera_info after the images, right lagging
+    3 ms, no ground truth, no --calib: mapped with ORB poses (the default)."""
+    bag = _driver_bag(os.path.join(tiny_sim, "sequence.bag"), str(tmp_path / "driver.bag"))
+    topics = ["--left-image", "/cam/left/image_raw", "--right-image", "/cam/right/image_raw",
+              "--left-info", "/cam/left/camera_info", "--right-info", "/cam/right/camera_info"]
+    out = str(tmp_path / "run")
+    _mdr("run", bag, "--out", out, "--quiet", "--max-frames", "8", *topics,
+         "--image-transport", "compressed", *SMALL)
+    s = json.load(open(os.path.join(out, "summary.json")))
+    assert s["pose_source"] == "orb" and s["frames_in"] == 8 and s["skipped_inputs"] == 0, s
+    assert s["camera"]["width"] == 188 and s["camera"]["baseline"] == pytest.approx(0.11)
+    assert s["frames_posed"] > 0
+    # the raw topics are not there: the error names the image topics the bag has
+    r = _mdr("run", bag, "--out", str(tmp_path / "x"), *topics, check=False)
+    assert r.returncode == 1 and "no stereo pair on /cam/left/image_raw and" in r.stderr and \
+        "/cam/left/image_raw/compressed [sensor_msgs/CompressedImage]" in r.stderr, r.stderr
+
+
+def test_mdr_run_tracks_unless_told_to_use_the_ground_truth(tiny_sim, tmp_path):
+    bag = os.path.join(tiny_sim, "sequence.bag")
+    _mdr("run", bag, "--out", str(tmp_path / "a"), "--quiet", "--max-frames", "8", *SMALL)
+    assert json.load(open(str(tmp_path / "a" / "summary.json")))["pose_source"] == "orb"
+    _mdr("run", bag, "--out", str(tmp_path / "b"), "--quiet", "--max-frames", "8",
+         "--pose-source", "groundtruth", *SMALL)
+    s = json.load(open(str(tmp_path / "b" / "summary.json")))
+    assert s["pose_source"] == "groundtruth" and s["frames_in"] == s["frames_posed"] == 8, s
+    traj = read_tum(str(tmp_path / "b" / "trajectory.tum"))
+    gt = read_tum(os.path.join(tiny_sim, "groundtruth.tum"))
+    np.testing.assert_allclose(traj.positions, gt.positions[:8], atol=1e-6)
+    # another ground-truth topic: none there, so no frame is posed (and the run says so)
+    r = _mdr("run", bag, "--out", str(tmp_path / "c"), "--max-frames", "4", "--pose-source",
+             "groundtruth", "--ground-truth-pose", "/nothing", *SMALL)
+    assert "no ground-truth pose at the first frame (topic /nothing)" in r.stderr
+    assert json.load(open(str(tmp_path / "c" / "summary.json")))["frames_posed"] == 0
 
 
 def test_orb_map_is_base_link_at_the_start_with_base_to_camera(small_sim):
@@ -97,7 +173,8 @@ def test_ablation_switches_change_the_map(small_sim, tmp_path):
     for name, t in (("base", "off"), ("temporal", "on")):
         outs[name] = str(tmp_path / name)
         _mdr("run", os.path.join(small_sim, "sequence.bag"), "--out", outs[name], "--quiet",
-             "--temporal", t, "--confidence", "off", "--max-frames", "30", *SMALL)
+             "--pose-source", "groundtruth", "--temporal", t, "--confidence", "off",
+             "--max-frames", "30", *SMALL)
     sb, st = (json.load(open(os.path.join(outs[k], "summary.json"))) for k in ("base", "temporal"))
     assert sb["temporal"] is False and sb["confidence"] is False
     assert sb["points_published"] > 2 * st["points_published"] > 0

@@ -237,7 +237,7 @@ def test_generate_is_deterministic_and_bag_is_readable(small_run, tmp_path):
     for t in ("/stereo/left/image_raw", "/stereo/right/image_raw", "/stereo/left/camera_info",
               "/stereo/right/camera_info", "/ground_truth/pose", "/tf"):
         assert topics[t].message_count == 10, t
-    frames = list(read_stereo_frames(s["bag"]))
+    frames = list(read_stereo_frames(s["bag"], with_ground_truth=True))
     assert len(frames) == 10
     gt = read_tum(s["groundtruth"]).matrices()
     for fr, T in zip(frames, gt):

@@ -9,8 +9,10 @@ It calls exactly the core classes the nodes call (``mdr_slam.pose.System``,
           -> depth (ELAS + keyframe Kalman filter, or ELAS only)     [node 2]
           -> fusion (confidence-based voxel map, or a plain voxel grid) [node 3]
 
-A frame whose pose is unknown (tracking LOST, no ground truth at that stamp) is not integrated:
-a smeared map is worse than a gap.
+Frames come from a bag (:func:`frames_from_bag`: the nodes' topics, approximate-time stereo
+pairing and camera_info handling, raw or compressed images) or an EuRoC/KITTI folder
+(:func:`frames_from_dataset`). A frame whose pose is unknown (tracking LOST, no ground truth at
+that stamp) is not integrated: a smeared map is worse than a gap.
 """
 from __future__ import annotations
 
@@ -236,23 +238,48 @@ class Pipeline:
 
 # ---------------------------------------------------------------------- frame sources
 def frames_from_bag(path: str, topics: Optional[dict] = None, max_frames: Optional[int] = None,
-                    calib: Optional[str] = None, on_skip=None):
-    """(StereoCamera, iterator of InputFrame) for a bag; the camera comes from the bag's
-    camera_info pair, or from ``calib`` (any format mdr_slam.calib reads) when given."""
+                    calib: Optional[str] = None, on_skip=None, ground_truth: bool = False,
+                    image_transport: str = "raw", sync_tolerance: float = 0.0,
+                    rectified: str = "auto"):
+    """(StereoCamera, iterator of InputFrame) for a bag, read as :func:`bagio.read_stereo_frames`
+    reads it (``topics``, ``image_transport``, ``sync_tolerance``: as the nodes take them).
+
+    The camera comes from the first pair's camera_info (wherever the bag has it), or from
+    ``calib`` (any format mdr_slam.calib reads) when given. ``rectified`` ("auto", "true",
+    "false"): whether the images are rectified already (:func:`camera.images_are_rectified`;
+    auto: an ``image_rect*`` topic, as stereo_image_proc publishes with the raw camera_info, or
+    a calibration that says so); then they are not rectified again. ``ground_truth``: attach the
+    bag's ground-truth pose to each frame (``--pose-source groundtruth``); without it frames
+    carry none.
+    """
     from . import bagio
+    from .camera import images_are_rectified
+    topics = dict(bagio.DEFAULT_TOPICS, **(topics or {}))
+    if not isinstance(rectified, bool) and \
+            str(rectified).strip().lower() not in ("auto", "true", "false"):   # before reading
+        raise ValueError("rectified must be 'auto', 'true' or 'false', not %r" % (rectified,))
     camera = None
     if calib:
         from .calib import load_stereo_calibration
         camera = load_stereo_calibration(calib)
-    it = bagio.read_stereo_frames(path, topics=topics, max_frames=max_frames, on_skip=on_skip)
+    it = bagio.read_stereo_frames(path, topics=topics, max_frames=max_frames,
+                                  with_ground_truth=ground_truth, on_skip=on_skip,
+                                  image_transport=image_transport, sync_tolerance=sync_tolerance)
     first = next(it, None)
     if first is None:
-        raise ValueError("%s: no stereo pair on the input topics" % path)
+        found = bagio.bag_image_topics(path)
+        want = bagio.image_topics(topics, image_transport)
+        raise ValueError("%s: no stereo pair on %s and %s (image topics in the bag: %s)" % (
+            path, want["left"], want["right"],
+            ", ".join("%s [%s]" % kv for kv in found.items()) or "none"))
     if camera is None:
         if first.left_info is None or first.right_info is None:
-            raise CalibrationError("%s has no camera_info before its first stereo pair; give a "
-                                   "calibration file (--calib)" % path)
+            raise CalibrationError("%s has no usable camera_info on %s and %s; give a calibration "
+                                   "file (--calib)" % (path, topics["left_info"],
+                                                       topics["right_info"]))
         camera = StereoCamera(first.left_info, first.right_info)
+    if images_are_rectified(rectified, topics["left_image"], camera):
+        camera = camera.assume_rectified()
 
     def gen() -> Iterator[InputFrame]:
         for f in itertools.chain([first], it):

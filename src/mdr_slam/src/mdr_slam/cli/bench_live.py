@@ -59,7 +59,8 @@ def _node_processes(launch_pid: int) -> Dict[str, "object"]:
     return out
 
 
-def _live_ate(bag: str, poses, out_dir: Optional[str] = None) -> Optional[dict]:
+def _live_ate(bag: str, poses, out_dir: Optional[str] = None,
+              topic: Optional[str] = None) -> Optional[dict]:
     """ATE of the pose node's poses as it published them (before later BA and loop corrections
     of the past) against the bag's ground-truth topic; None when the bag has none. The poses are
     written to ``out_dir/live_trajectory.tum`` (TUM format) when given."""
@@ -74,7 +75,7 @@ def _live_ate(bag: str, poses, out_dir: Optional[str] = None) -> Optional[dict]:
     if out_dir:
         write_tum(os.path.join(out_dir, "live_trajectory.tum"), est)
     try:
-        gt = read_ground_truth(bag)
+        gt = read_ground_truth(bag, topic) if topic else read_ground_truth(bag)
     except Exception:
         return None
     if len(gt) < 2 or len(poses) < 3:
@@ -425,7 +426,7 @@ def _summarize(args, bag, lst: "_Listener", samples, elapsed, pose_source) -> di
     r["tracking_ms"] = {k: (None if v is None else round(v, 1))
                         for k, v in _stats(lst.tracking_ms).items()}
     r["pose_hz"] = round(_rate(lst.t_pose), 2)
-    r["live_ate"] = _live_ate(bag, lst.poses, args.out)   # groundtruth relay: ~0 (a check of the chain)
+    r["live_ate"] = _live_ate(bag, lst.poses, args.out, getattr(args, "ground_truth_pose", None))   # groundtruth relay: ~0 (a check of the chain)
     r["depth_hz"] = round(_rate(lst.t_depth), 2)
     r["map_integration_hz"] = round(_integration_rate(lst.integrated), 2)
     r["clouds_integrated"] = int(integrated) if integrated is not None else None

@@ -2,18 +2,25 @@
 (Table 2) on simulated sequences with exact ground truth.
 
     mdr bench BAG --out DIR [--duration S] [--loop] [--rate 1] [--pose-source orb|groundtruth]
+        [--left-image TOPIC ... --image-transport compressed --sync-tolerance S --rectified auto]
     mdr bench --ablation --out DIR [--scenes office,corridor] [--duration 30] [--pose-source groundtruth]
 
 Live (``mdr bench BAG``): starts a private roscore, ``roslaunch mdr_slam mdr.launch bag:=BAG`` (the
 three nodes and ``rosbag play --clock``), samples every node's CPU % and RSS once a second (psutil),
 listens to the nodes' topics and ``/diagnostics``, and writes ``DIR/bench.json`` (map_integration_hz,
 depth_hz, pose_hz, frames_in, frames_tracked, latency_ms, cpu_percent and rss_mb per node and in
-total, median and max), ``DIR/report.md`` and ``DIR/resources.png``.
+total, median and max), ``DIR/report.md`` and ``DIR/resources.png``. The bag input options
+(``--left-image``, ``--right-image``, ``--left-info``, ``--right-info``, ``--ground-truth-pose``,
+``--image-transport``, ``--sync-tolerance``, ``--rectified``) go to the launch file as its
+arguments of the same names (``left_image:=...``); live poses default to ``orb`` (the launch
+file's default), ``groundtruth`` relays the bag's ground-truth topic.
 
 For each scene: render the sequence (``mdr sim``, skipped when ``DIR/sim_<scene>`` exists), run the
 offline pipeline (``mdr run``) four times -- ELAS-only baseline (temporal off, confidence off),
 temporal only, confidence only, full -- and score each map against the simulator's ground-truth
-map (``mdr eval map``: RMSE of estimated-to-truth distances, completeness at 5 cm). Writes
+map (``mdr eval map``: RMSE of estimated-to-truth distances, completeness at 5 cm). The runs
+place the frames with the simulator's true poses unless ``--pose-source orb`` (``mdr run`` is
+given ``--pose-source`` explicitly: its own default is orb). Writes
 ``DIR/ablation.json``, ``DIR/ablation.md`` and ``DIR/ablation.png``.
 """
 from __future__ import annotations
@@ -27,6 +34,7 @@ import time
 from collections import OrderedDict
 
 from . import mdr_command
+from .main_run import add_bag_input_arguments, bag_input_argv
 
 CONFIGS = OrderedDict([
     ("elas_only", {"temporal": False, "confidence": False}),
@@ -50,7 +58,8 @@ def add_parser(sub, name, help_text):
     p.add_argument("--duration", type=float, default=30.0)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--pose-source", choices=("groundtruth", "orb"), default=None,
-                   help="default: groundtruth for --ablation, orb live")
+                   help="default: groundtruth for --ablation (map quality of depth and fusion "
+                        "alone), orb live (as on a robot)")
     p.add_argument("--configs", default=",".join(CONFIGS),
                    help="subset of %s" % ", ".join(CONFIGS))
     p.add_argument("--jobs", type=int, default=2, help="runs in parallel (one per core)")
@@ -60,8 +69,16 @@ def add_parser(sub, name, help_text):
                    help="live: extra mdr.launch argument (repeatable), e.g. depth_prefix:=")
     p.add_argument("--set", action="append", default=[], metavar="NODE.KEY=VALUE",
                    help="parameter override passed to every mdr run, or to the live nodes")
+    add_bag_input_arguments(p)
     p.set_defaults(func=run)
     return p
+
+
+def _input_launch_args(args) -> list:
+    """The bag input options as mdr.launch arguments of the same names."""
+    return ["%s:=%s" % (k, getattr(args, k)) for k in (
+        "left_image", "right_image", "left_info", "right_info", "ground_truth_pose",
+        "image_transport", "sync_tolerance", "rectified")]
 
 
 
@@ -86,6 +103,8 @@ def run(args) -> int:
         if not args.bag:
             raise SystemExit("mdr bench: give a BAG for the live benchmark, or --ablation")
         from .bench_live import run_live
+        # before --launch-arg's, so those still win (roslaunch keeps an argument's last value)
+        args.launch_arg = _input_launch_args(args) + list(args.launch_arg or [])
         return run_live(args)
     return run_ablation(args)
 
@@ -123,6 +142,7 @@ def run_ablation(args) -> int:
                              "--out", d, "--pose-source", args.pose_source or "groundtruth", "--quiet",
                              "--temporal", "on" if CONFIGS[c]["temporal"] else "off",
                              "--confidence", "on" if CONFIGS[c]["confidence"] else "off"]
+            argv += bag_input_argv(args)
             if args.max_frames:
                 argv += ["--max-frames", str(args.max_frames)]
             for s in args.set:

@@ -13,6 +13,10 @@ tracker's ``map`` frame (its first camera pose); to score it, it is moved into t
 frame by the SE(3) alignment of the trajectory (Umeyama), as evo aligns trajectories. With
 ``--pose-source groundtruth`` the sample's true poses place the depth (the launch file's
 ``pose_source:=groundtruth``), so the map shows what depth and fusion alone make of the sequence.
+``--pose-source`` is passed to ``mdr run`` explicitly, as are the bag input options
+(``--left-image`` ... ``--rectified``, as ``mdr run`` takes them: the rendered sample uses the
+default topics; a bag of your own placed at ``output/sample/sequence.bag`` may use others; it is
+then scored against ``groundtruth.tum`` and ``gt_map.ply`` beside it).
 """
 from __future__ import annotations
 
@@ -26,6 +30,7 @@ import time
 import numpy as np
 
 from . import mdr_command
+from .main_run import add_bag_input_arguments, bag_input_argv
 
 
 def add_parser(sub, name, help_text):
@@ -34,7 +39,8 @@ def add_parser(sub, name, help_text):
     p.add_argument("--out", default="output")
     p.add_argument("--scene", default="office", help="sample scene (office, corridor, garage)")
     p.add_argument("--duration", type=float, default=30.0)
-    p.add_argument("--pose-source", choices=("orb", "groundtruth"), default="orb")
+    p.add_argument("--pose-source", choices=("orb", "groundtruth"), default="orb",
+                   help="orb (default): track, as on a robot; groundtruth: the sample's true poses")
     p.add_argument("--max-frames", type=int, default=None)
     p.add_argument("--scale", type=float, default=1.0,
                    help="image scale of the rendered sample (tests use 0.5)")
@@ -42,6 +48,7 @@ def add_parser(sub, name, help_text):
                    help="parameter override for mdr run")
     p.add_argument("--no-rviz", action="store_true",
                    help="skip the rviz screenshot (taken under Xvfb when rviz is installed)")
+    add_bag_input_arguments(p)
     p.set_defaults(func=run)
     return p
 
@@ -72,6 +79,7 @@ def run(args) -> int:
         _step("1/4 sample sequence: %s (present)" % bag)
     _step("2/4 mapping it: pose (%s) -> depth (ELAS + temporal filter) -> fusion" % args.pose_source)
     cmd = mdr_command() + ["run", bag, "--out", demo, "--pose-source", args.pose_source]
+    cmd += bag_input_argv(args)
     if args.max_frames:
         cmd += ["--max-frames", str(args.max_frames)]
     for kv in args.set:

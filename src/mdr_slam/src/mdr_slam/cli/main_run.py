@@ -1,7 +1,18 @@
 """``mdr run``: the whole pipeline offline on every frame of a bag (or an EuRoC/KITTI folder).
 
-    mdr run BAG --out DIR [--pose-source groundtruth|orb] [--temporal on|off] [--confidence on|off]
+    mdr run BAG --out DIR [--pose-source orb|groundtruth] [--temporal on|off] [--confidence on|off]
+    mdr run BAG --out DIR --left-image /cam/left/image_rect --right-image /cam/right/image_rect \
+        --left-info /cam/left/camera_info --right-info /cam/right/camera_info \
+        [--image-transport raw|compressed] [--sync-tolerance S] [--rectified auto|true|false]
     mdr run --euroc DIR --out DIR        mdr run --kitti DIR --out DIR
+
+The bag is read as the nodes read their topics (the options are named as mdr.launch's
+arguments): images of any intensity encoding, raw or compressed (``<topic>/compressed``), in the
+order they were recorded, left and right paired by approximate time (``--sync-tolerance``, 0 =
+auto), camera_info before, after or once beside the images (or ``--calib``). The frames are
+tracked by the ORB tracker (``--pose-source orb``, the default, as on a robot);
+``--pose-source groundtruth`` places them with the bag's ground-truth poses
+(``--ground-truth-pose``) or the dataset's ground truth instead.
 
 Writes ``DIR/map.ply`` (the fused global map), ``DIR/trajectory.tum`` (left camera optical frame in
 ``map``, one line per posed frame) and ``DIR/summary.json`` (frame counts, per-stage median and p90
@@ -33,14 +44,15 @@ def add_parser(sub, name, help_text):
     src.add_argument("--euroc", metavar="DIR", help="EuRoC/ASL folder (mav0/cam0, mav0/cam1)")
     src.add_argument("--kitti", metavar="DIR", help="KITTI odometry folder (image_0/1, calib.txt)")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--pose-source", choices=("orb", "groundtruth"), default=None,
-                   help="orb: track with mdr_slam.pose; groundtruth: the bag's /ground_truth/pose "
-                        "(default: groundtruth when the input has ground truth, else orb)")
+    p.add_argument("--pose-source", choices=("orb", "groundtruth"), default="orb",
+                   help="orb (default): track with mdr_slam.pose, as on a robot; groundtruth: the "
+                        "bag's ground-truth poses (--ground-truth-pose) or the dataset's")
     p.add_argument("--temporal", type=_onoff, default=True, metavar="on|off",
                    help="keyframe Kalman temporal filter (off: ELAS-only baseline)")
     p.add_argument("--confidence", type=_onoff, default=True, metavar="on|off",
                    help="confidence-based fusion (off: plain voxel-grid accumulation)")
     p.add_argument("--calib", help="calibration file for inputs without camera_info")
+    add_bag_input_arguments(p)
     p.add_argument("--preset", choices=("sample", "euroc", "kitti"), default=None,
                    help="dataset preset of config/<preset>/*.yaml (default: from the input)")
     p.add_argument("--max-frames", type=int, default=None)
@@ -53,6 +65,46 @@ def add_parser(sub, name, help_text):
     p.add_argument("--quiet", action="store_true", help="no progress line")
     p.set_defaults(func=run)
     return p
+
+
+def add_bag_input_arguments(p) -> None:
+    """The bag's topics and how to read them, named as mdr.launch's arguments (also used by
+    ``mdr bench`` and ``mdr demo``, which pass them on)."""
+    from ..bagio import DEFAULT_TOPICS, IMAGE_TRANSPORTS
+    g = p.add_argument_group("bag input (as mdr.launch's arguments)")
+    for name, key in (("left-image", "left_image"), ("right-image", "right_image"),
+                      ("left-info", "left_info"), ("right-info", "right_info")):
+        g.add_argument("--" + name, default=DEFAULT_TOPICS[key], metavar="TOPIC",
+                       help="default %s" % DEFAULT_TOPICS[key])
+    g.add_argument("--ground-truth-pose", default=DEFAULT_TOPICS["ground_truth"], metavar="TOPIC",
+                   help="geometry_msgs/PoseStamped ground truth, read with --pose-source "
+                        "groundtruth (default %s)" % DEFAULT_TOPICS["ground_truth"])
+    g.add_argument("--image-transport", choices=IMAGE_TRANSPORTS, default="raw",
+                   help="raw: sensor_msgs/Image on the image topics; compressed: "
+                        "sensor_msgs/CompressedImage (png, jpeg) on <image topic>/compressed")
+    g.add_argument("--sync-tolerance", type=float, default=0.0, metavar="S",
+                   help="largest left/right stamp difference of a stereo pair, s (default 0: "
+                        "auto, 0.4 of the frame period)")
+    g.add_argument("--rectified", choices=("auto", "true", "false"), default="auto",
+                   help="whether the images are rectified already (auto: image_rect* topics, "
+                        "which come with the raw camera_info, or a calibration without "
+                        "distortion); rectified images are not rectified again")
+
+
+def bag_topics(args) -> dict:
+    """bagio's topics dict of the parsed bag input arguments."""
+    return {"left_image": args.left_image, "right_image": args.right_image,
+            "left_info": args.left_info, "right_info": args.right_info,
+            "ground_truth": args.ground_truth_pose}
+
+
+def bag_input_argv(args) -> list:
+    """The bag input arguments again, for an ``mdr run`` started as a subprocess."""
+    out = []
+    for name in ("left_image", "right_image", "left_info", "right_info", "ground_truth_pose",
+                 "image_transport", "sync_tolerance", "rectified"):
+        out += ["--" + name.replace("_", "-"), str(getattr(args, name))]
+    return out
 
 
 def _overrides(items):
@@ -76,11 +128,19 @@ def run(args) -> int:
         except ImportError:
             pass
     ov = _overrides(args.set)
-    skipped = []
+    skipped = {"n": 0, "examples": []}
+
+    def on_skip(reason: str) -> None:        # a count and a few reasons, not one per message
+        skipped["n"] += 1
+        if len(skipped["examples"]) < 5:
+            skipped["examples"].append(reason)
     try:
         if args.bag:
-            camera, frames = frames_from_bag(args.bag, max_frames=args.max_frames,
-                                             calib=args.calib, on_skip=skipped.append)
+            camera, frames = frames_from_bag(
+                args.bag, topics=bag_topics(args), max_frames=args.max_frames, calib=args.calib,
+                on_skip=on_skip, ground_truth=args.pose_source == "groundtruth",
+                image_transport=args.image_transport, sync_tolerance=args.sync_tolerance,
+                rectified=args.rectified)
             preset = args.preset
         else:
             kind = "euroc" if args.euroc else "kitti"
@@ -94,8 +154,11 @@ def run(args) -> int:
     if first is None:
         print("mdr run: no frames in the input", file=sys.stderr)
         return 1
-    pose_source = args.pose_source or ("groundtruth" if first.T_map_cam_gt is not None else "orb")
-    cfg = PipelineConfig(pose_source=pose_source, temporal=args.temporal,
+    if args.pose_source == "groundtruth" and first.T_map_cam_gt is None:
+        print("mdr run: warning: no ground-truth pose at the first frame (%s); frames without "
+              "one are not mapped" % (("topic %s" % args.ground_truth_pose) if args.bag
+                                      else "the dataset's ground truth"), file=sys.stderr)
+    cfg = PipelineConfig(pose_source=args.pose_source, temporal=args.temporal,
                          confidence=args.confidence, preset=preset, pose_params=ov["pose"],
                          depth_params=ov["depth"], fusion_params=ov["fusion"])
     pipe = Pipeline(camera, cfg)
@@ -111,8 +174,11 @@ def run(args) -> int:
     if not args.quiet:
         print("", file=sys.stderr)
     summary = pipe.finish(args.out, extra={
-        "input": args.bag or args.euroc or args.kitti, "skipped_inputs": len(skipped),
-        "wall_s": round(time.perf_counter() - t0, 3)})
+        "input": args.bag or args.euroc or args.kitti, "skipped_inputs": skipped["n"],
+        "skipped_examples": skipped["examples"], "wall_s": round(time.perf_counter() - t0, 3)})
+    if skipped["n"] and not args.quiet:
+        print("mdr run: %d input messages skipped, e.g. %s" % (
+            skipped["n"], "; ".join(skipped["examples"][:3])), file=sys.stderr)
     print("mdr run: %d frames (%d posed, %d integrated), map %d points -> %s" % (
         summary["frames_in"], summary["frames_posed"], summary["frames_integrated"],
         summary["map_points"], args.out))
