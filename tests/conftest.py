@@ -43,6 +43,16 @@ def sample_bag(tmp_path_factory):
     return d
 
 
+def serialize_roundtrip(msg):
+    """A ROS message serialized and deserialized as rospy and rosbag do (data becomes bytes)."""
+    import io
+    buf = io.BytesIO()
+    msg.serialize(buf)
+    out = type(msg)()
+    out.deserialize(buf.getvalue())
+    return out
+
+
 def _free_port() -> int:
     s = socket.socket()
     s.bind(("127.0.0.1", 0))

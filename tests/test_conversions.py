@@ -1,7 +1,6 @@
 """Round trips of mdr_slam.conversions: Image, CameraInfo, PointCloud2, poses and transforms."""
 from __future__ import annotations
 
-import io
 import time
 
 import numpy as np
@@ -11,14 +10,7 @@ from mdr_slam import conversions as cv
 from mdr_slam.camera import CameraModel
 from mdr_slam.geometry import make_T, quat_to_R
 
-
-def _serialize_roundtrip(msg):
-    """Serialize and deserialize like rospy/rosbag do (data becomes bytes)."""
-    buf = io.BytesIO()
-    msg.serialize(buf)
-    out = type(msg)()
-    out.deserialize(buf.getvalue())
-    return out
+from conftest import serialize_roundtrip
 
 
 @pytest.mark.parametrize("encoding,dtype,shape", [
@@ -32,7 +24,7 @@ def test_image_roundtrip(encoding, dtype, shape):
     else:
         a = rng.integers(0, np.iinfo(dtype).max, size=shape, dtype=dtype)
     msg = cv.numpy_to_image(a, encoding, stamp=12.5, frame_id="cam")
-    back = cv.image_to_numpy(_serialize_roundtrip(msg))
+    back = cv.image_to_numpy(serialize_roundtrip(msg))
     assert back.dtype == np.dtype(dtype) and back.shape == shape
     np.testing.assert_array_equal(back, a)
     assert msg.header.frame_id == "cam" and abs(cv.stamp_to_sec(msg.header.stamp) - 12.5) < 1e-9
@@ -75,7 +67,7 @@ def test_camera_info_roundtrip():
     P = np.array([[435.2, 0, 367.5, -47.9], [0, 435.2, 252.2, 0], [0, 0, 1, 0]])
     R = quat_to_R([0.01, -0.02, 0.003, 1.0])
     m = CameraModel(752, 480, K, [-0.28, 0.07, 0.0002, 1.7e-05, 0.0], R, P, frame_id="cam0")
-    back = cv.camera_info_to_model(_serialize_roundtrip(cv.model_to_camera_info(m, stamp=3.0)))
+    back = cv.camera_info_to_model(serialize_roundtrip(cv.model_to_camera_info(m, stamp=3.0)))
     for name in ("K", "D", "R", "P"):
         np.testing.assert_allclose(getattr(back, name), getattr(m, name))
     assert (back.width, back.height, back.frame_id) == (752, 480, "cam0")
@@ -84,7 +76,7 @@ def test_camera_info_roundtrip():
 def test_camera_info_pair_keeps_the_principal_point_difference():
     from mdr_slam.camera import StereoCamera
     cam = StereoCamera.from_rectified(752, 480, 458.0, 458.0, 367.0, 248.0, 0.11).with_doffs(-0.2)
-    back = StereoCamera(*[cv.camera_info_to_model(_serialize_roundtrip(cv.model_to_camera_info(m)))
+    back = StereoCamera(*[cv.camera_info_to_model(serialize_roundtrip(cv.model_to_camera_info(m)))
                           for m in (cam.left, cam.right)])
     assert back.doffs == pytest.approx(-0.2) and back.is_rectified
     assert back.baseline == pytest.approx(0.11)
@@ -104,7 +96,7 @@ def test_pointcloud2_roundtrip_arbitrary_fields():
               "n_obs": rng.integers(0, 100, n).astype(np.uint16)}
     msg = cv.arrays_to_pointcloud2(fields, xyz=xyz, stamp=1.0, frame_id="cam")
     assert [f.name for f in msg.fields] == ["x", "y", "z", "intensity", "variance", "n_obs"]
-    back = cv.pointcloud2_to_arrays(_serialize_roundtrip(msg))
+    back = cv.pointcloud2_to_arrays(serialize_roundtrip(msg))
     np.testing.assert_array_equal(cv.pointcloud2_to_xyz(msg), xyz)
     np.testing.assert_allclose(back["variance"], fields["variance"].astype(np.float32))
     np.testing.assert_array_equal(back["n_obs"], fields["n_obs"])
@@ -134,7 +126,7 @@ def test_pointcloud2_nans_padding_and_empty():
                             PointField("z", 8, PointField.FLOAT32, 1)], data=b"".join(rows))
     np.testing.assert_array_equal(cv.pointcloud2_to_xyz(m), pts)
     empty = cv.arrays_to_pointcloud2({"intensity": np.zeros(0, np.float32)}, xyz=np.zeros((0, 3)))
-    assert cv.pointcloud2_to_xyz(_serialize_roundtrip(empty)).shape == (0, 3)
+    assert cv.pointcloud2_to_xyz(serialize_roundtrip(empty)).shape == (0, 3)
     bad = cv.arrays_to_pointcloud2({}, xyz=pts)
     bad.data = bad.data[:20]
     with pytest.raises(cv.ConversionError, match="truncated"):
@@ -165,10 +157,10 @@ def test_pointcloud2_300k_points_speed():
 def test_pose_and_transform_roundtrip():
     T = make_T(quat_to_R([0.1, -0.3, 0.2, 0.9]), [1.0, -2.0, 3.5])
     np.testing.assert_allclose(cv.pose_to_matrix(cv.matrix_to_pose(T)), T, atol=1e-12)
-    ps = _serialize_roundtrip(cv.matrix_to_pose_stamped(T, stamp=5.25, frame_id="map"))
+    ps = serialize_roundtrip(cv.matrix_to_pose_stamped(T, stamp=5.25, frame_id="map"))
     np.testing.assert_allclose(cv.pose_stamped_to_matrix(ps), T, atol=1e-12)
     assert ps.header.frame_id == "map"
-    ts = _serialize_roundtrip(cv.matrix_to_transform_stamped(T, 7, "odom", "base_link"))
+    ts = serialize_roundtrip(cv.matrix_to_transform_stamped(T, 7, "odom", "base_link"))
     np.testing.assert_allclose(cv.transform_stamped_to_matrix(ts), T, atol=1e-12)
     assert (ts.header.frame_id, ts.child_frame_id) == ("odom", "base_link")
     p = cv.matrix_to_pose(T)

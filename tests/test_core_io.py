@@ -95,6 +95,18 @@ def test_geometry():
     assert abs(t - 5) < 1e-12 and abs(r - 0.5) < 1e-12
 
 
+def test_body_twist():
+    """nav_msgs/Odometry's twist: velocities in the moving frame (a car driving forward while
+    turning left has +x linear and +z angular velocity, whatever its heading)."""
+    from scipy.spatial.transform import Rotation
+    from mdr_slam.geometry import body_twist, make_T
+    yaw0 = 2.0
+    T0 = make_T(Rotation.from_euler("z", yaw0).as_matrix(), [1.0, 2.0, 0.0])
+    step = make_T(Rotation.from_euler("z", 0.05).as_matrix(), [0.1, 0.0, 0.0])
+    v, w = body_twist(T0, T0 @ step, 0.1)
+    assert np.allclose(v, [1.0, 0.0, 0.0]) and np.allclose(w, [0.0, 0.0, 0.5])
+
+
 def test_stereo_camera_geometry_and_rectification():
     cam = StereoCamera.from_rectified(752, 480, 458.0, 457.0, 370.0, 245.0, 0.11)
     assert abs(cam.baseline - 0.11) < 1e-12 and cam.is_rectified

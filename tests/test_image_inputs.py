@@ -2,8 +2,6 @@
 images that are already rectified while their camera_info carries the raw calibration."""
 from __future__ import annotations
 
-import io
-
 import cv2
 import numpy as np
 import pytest
@@ -12,13 +10,7 @@ from mdr_slam import conversions as cv
 from mdr_slam.camera import CameraModel, StereoCamera, images_are_rectified
 from mdr_slam.geometry import quat_to_R
 
-
-def _serialize_roundtrip(msg):
-    buf = io.BytesIO()
-    msg.serialize(buf)
-    out = type(msg)()
-    out.deserialize(buf.getvalue())
-    return out
+from conftest import serialize_roundtrip
 
 
 def _colour(h=64, w=80):
@@ -48,7 +40,7 @@ def test_bayer_patterns_give_the_grey_of_the_colour_image(bits):
     src = colour if bits == 8 else colour.astype(np.uint16) * 257
     for pattern in PATTERNS:
         enc = "bayer_%s%d" % (pattern, bits)
-        msg = _serialize_roundtrip(cv.numpy_to_image(_mosaic(src, pattern), enc))
+        msg = serialize_roundtrip(cv.numpy_to_image(_mosaic(src, pattern), enc))
         grey = cv.image_to_mono8(msg)
         assert grey.dtype == np.uint8 and grey.shape == colour.shape[:2]
         assert np.abs(grey.astype(int)[4:-4, 4:-4] - want).max() <= 3, pattern
@@ -75,7 +67,7 @@ def test_yuv422_takes_the_luma():
     Y = rng.integers(0, 256, (6, 10), dtype=np.uint8)
     UV = rng.integers(0, 256, (6, 10), dtype=np.uint8)  # U0 V0 U1 V1 ... shared by pixel pairs
     uyvy = np.stack([UV, Y], axis=2)
-    msg = _serialize_roundtrip(cv.numpy_to_image(uyvy, "yuv422"))
+    msg = serialize_roundtrip(cv.numpy_to_image(uyvy, "yuv422"))
     np.testing.assert_array_equal(cv.image_to_mono8(msg), Y)
     yuy2 = np.stack([Y, UV], axis=2)
     np.testing.assert_array_equal(cv.image_to_mono8(cv.numpy_to_image(yuy2, "yuv422_yuy2")), Y)
@@ -136,7 +128,7 @@ def test_compressed_roundtrip_and_format_strings(fmt):
         msg = cv.numpy_to_compressed_image(arr, fmt, stamp=2.5, frame_id="cam0", quality=90)
         assert msg.format == fmt_str
         assert msg.header.frame_id == "cam0" and cv.stamp_to_sec(msg.header.stamp) == 2.5
-        grey = cv.compressed_image_to_mono8(_serialize_roundtrip(msg))
+        grey = cv.compressed_image_to_mono8(serialize_roundtrip(msg))
         assert grey.dtype == np.uint8 and grey.shape == mono.shape
         err = np.abs(grey.astype(int) - mono)
         if fmt == "png":

@@ -189,8 +189,12 @@ def test_launch_runs_from_the_install_space_alone(install_space, roscore, tmp_pa
     master = rosgraph.Master("/test_install", master_uri=env["ROS_MASTER_URI"])
 
     def node_uri(name):
+        """The URI of a live /name (a node of an earlier test killed without unregistering
+        leaves a stale one until this launch's node takes the name over)."""
         try:
-            return master.lookupNode("/" + name)
+            uri = master.lookupNode("/" + name)
+            xmlrpc.client.ServerProxy(uri).getPid("/test_install")
+            return uri
         except Exception:
             return None
 

@@ -165,7 +165,7 @@ class PoseRelay:
         if root != frame:   # the camera has a tree of its own (e.g. a driver's): attach its root
             try:
                 T_root = transform_stamped_to_matrix(self.tf_buffer.lookup_transform(
-                    root, frame, rospy.Time(0), rospy.Duration(0.05)))
+                    root, frame, rospy.Time(0)))
             except tf2_ros.TransformException:
                 pass
         self.T_base_cam, self.camera_frame = T, frame
@@ -278,19 +278,25 @@ class PoseRelay:
         return True
 
     def _odom_base_at(self, stamp):
-        """The robot's T_odom_base at ``stamp`` (None, with a warning, when tf has none)."""
+        """The robot's T_odom_base at ``stamp`` (None, with a warning, when tf has none). Waits
+        up to ODOM_LOOKUP_TIMEOUT s of wall time: a sim clock that stops (the bag ends) must not
+        hold the tracking thread."""
+        import time
         import rospy
         import tf2_ros
         from ..conversions import transform_stamped_to_matrix
-        try:
-            return transform_stamped_to_matrix(self.tf_buffer.lookup_transform(
-                self.p["odom_frame"], self.p["base_frame"], stamp,
-                rospy.Duration(ODOM_LOOKUP_TIMEOUT)))
-        except (tf2_ros.TransformException, rospy.ROSTimeMovedBackwardsException) as e:
-            self.warn("odomtf", "pose_node: no %s <- %s at %.3f (%s); map -> odom kept"
-                      % (self.p["odom_frame"], self.p["base_frame"], stamp.to_sec(),
-                         str(e).splitlines()[0] if str(e) else type(e).__name__))
-            return None
+        deadline = time.monotonic() + ODOM_LOOKUP_TIMEOUT
+        while True:
+            try:
+                return transform_stamped_to_matrix(self.tf_buffer.lookup_transform(
+                    self.p["odom_frame"], self.p["base_frame"], stamp))
+            except (tf2_ros.TransformException, rospy.ROSTimeMovedBackwardsException) as e:
+                if time.monotonic() > deadline or rospy.is_shutdown():
+                    self.warn("odomtf", "pose_node: no %s <- %s at %.3f (%s); map -> odom kept"
+                              % (self.p["odom_frame"], self.p["base_frame"], stamp.to_sec(),
+                                 str(e).splitlines()[0] if str(e) else type(e).__name__))
+                    return None
+            time.sleep(0.005)
 
     def _resend_map_odom(self, _event=None) -> None:
         """Wheel odometry: the last map -> odom again, future-dated by one period (as amcl

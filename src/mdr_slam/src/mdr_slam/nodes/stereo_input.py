@@ -3,8 +3,9 @@
 - ``left/image`` and ``right/image`` (remap them to the driver's topics) as sensor_msgs/Image, or
   with ``image_transport: compressed`` as sensor_msgs/CompressedImage on ``<topic>/compressed``
   (image_transport's naming: the suffix goes on the resolved, remapped name);
-- ``left/camera_info`` and ``right/camera_info``, published before or after their image: a pair
-  takes the latest info of each side (the calibration of a camera does not change per frame);
+- ``left/camera_info`` and ``right/camera_info``, published before or after their image, or
+  only now and then: a pair takes the info stamped as its image when the driver stamps them so
+  (waiting for it until the next pair), else the latest one;
 - pairing by :class:`mdr_slam.stereo_sync.StereoSync` (approximate time, ``sync_tolerance``),
   with a throttled warning naming the topics and the stamp offsets when images arrive but no pair
   forms (the counterpart of rtabmap_ros's "did not receive data since 5 seconds").
@@ -13,6 +14,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 from typing import Callable
 
 from ..stereo_sync import StereoSync
@@ -41,8 +43,10 @@ class StereoInput:
         self.node, self.callback, self.warn = node, callback, warn
         self.with_info = with_info
         self.sync = StereoSync(tolerance, queue_size)
-        self.lock = threading.Lock()
-        self.info = {"left": None, "right": None}
+        self.lock = threading.RLock()   # pairs go out in order, one at a time
+        self.infos = {"left": deque(maxlen=10), "right": deque(maxlen=10)}   # (stamp, msg)
+        self.exact = {"left": False, "right": False}   # the last pair had infos of its stamps
+        self._held = None   # a pair waiting for its camera_info
         self.topics = {}
         self.info_topics = {s: rospy.resolve_name(s + "/camera_info") for s in ("left", "right")}
         kind = CompressedImage if transport == "compressed" else Image
@@ -57,27 +61,57 @@ class StereoInput:
             if with_info:
                 self.subs.append(rospy.Subscriber(side + "/camera_info", CameraInfo, self._on_info,
                                                   side, queue_size=5))
-        self.timer = rospy.Timer(rospy.Duration(1.0), self._watch)
+        self.timer = rospy.Timer(rospy.Duration(1.0), self._watch, reset=True)   # survives a bag loop
 
     @property
     def left_topic(self) -> str:
         return self.topics["left"]
 
     def _on_info(self, msg, side: str) -> None:
-        self.info[side] = msg
+        with self.lock:
+            self.infos[side].append((msg.header.stamp.to_sec(), msg))
+            held, self._held = self._held, None
+            if held is not None:   # a pair whose camera_info comes after its images
+                self._deliver(*held)
 
     def _on_image(self, msg, side: str) -> None:
         with self.lock:
             pairs = self.sync.add(side, msg.header.stamp.to_sec(), msg, now=time.monotonic())
             for _tl, left, _tr, right in pairs:
-                li, ri = self.info["left"], self.info["right"]
-                if self.with_info and (li is None or ri is None):
-                    missing = [s for s in ("left", "right") if self.info[s] is None]
-                    self.warn("noinfo", "%s: stereo pair at %.3f skipped: no camera_info yet on %s"
-                              % (self.node, left.header.stamp.to_sec(),
-                                 " and ".join(self.info_topics[s] for s in missing)))
-                    continue
-                self.callback(left, right, li, ri)
+                if self._held is not None:   # its info never came: the latest one will do
+                    held, self._held = self._held, None
+                    self._deliver(*held, wait=False)
+                self._deliver(left, right)
+
+    def _info_for(self, side: str, stamp: float):
+        """(info stamped as the image, True), else (the latest info, False), else (None, False)."""
+        q = self.infos[side]
+        for s, m in reversed(q):
+            if abs(s - stamp) < 1e-6:
+                return m, True
+        return (q[-1][1] if q else None), False
+
+    def _deliver(self, left, right, wait: bool = True) -> None:
+        if not self.with_info:
+            self.callback(left, right, None, None)
+            return
+        li, l_exact = self._info_for("left", left.header.stamp.to_sec())
+        ri, r_exact = self._info_for("right", right.header.stamp.to_sec())
+        # a driver that stamps each camera_info as its image publishes it right after the image:
+        # wait for it (until the next pair) rather than take the previous frame's
+        late = (self.exact["left"] and not l_exact) or (self.exact["right"] and not r_exact)
+        missing = li is None or ri is None
+        if missing or (late and wait):
+            if missing and not wait:
+                sides = [s for s, i in (("left", li), ("right", ri)) if i is None]
+                self.warn("noinfo", "%s: stereo pair at %.3f skipped: no camera_info yet on %s"
+                          % (self.node, left.header.stamp.to_sec(),
+                             " and ".join(self.info_topics[s] for s in sides)))
+                return
+            self._held = (left, right)
+            return
+        self.exact = {"left": l_exact, "right": r_exact}
+        self.callback(left, right, li, ri)
 
     def _watch(self, _event=None) -> None:
         with self.lock:
