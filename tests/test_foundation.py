@@ -74,6 +74,20 @@ def test_launch_args_reach_the_nodes():
     assert "/use_sim_time" not in yaml.safe_load(r.stdout)
 
 
+def test_bag_path_is_taken_from_the_callers_directory(tmp_path):
+    """roslaunch runs rosbag play in ~/.ros: a relative bag:= must be made absolute from where
+    the user typed the command, an absolute one kept."""
+    def player(bag, cwd):
+        env = dict(os.environ, PWD=str(cwd))   # what the shell sets
+        r = subprocess.run(["roslaunch", "--args", "/bag_player", "mdr_slam", "mdr.launch",
+                            "bag:=" + bag], capture_output=True, text=True, cwd=str(cwd), env=env)
+        assert r.returncode == 0, r.stderr
+        return [a for a in r.stdout.split() if a.endswith(".bag")][-1]
+    assert player("output/sample/sequence.bag", tmp_path) == \
+        os.path.join(str(tmp_path), "output/sample/sequence.bag")
+    assert player("/data/x.bag", tmp_path) == "/data/x.bag"
+
+
 def test_launch_prefix_args_reach_the_node_command():
     """pose_prefix / depth_prefix / fusion_prefix put a command in front of that node only."""
     def command(node, *args):

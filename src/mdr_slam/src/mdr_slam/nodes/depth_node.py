@@ -73,7 +73,7 @@ DEFAULTS = {
     "rectified": "auto",            # auto: image_rect* topics and distortion-free camera_info are rectified
     "calib": "",                    # calibration file(s) for inputs without camera_info
     "publish_depth_image": False,
-    "diagnostic_period": 1.0,
+    "diagnostics_period": 1.0,
     # bytes: fixed glibc mmap threshold (1048576: flat RSS in long runs, but +60 % CPU per frame
     # from page faults); 0 = glibc's dynamic threshold. See the docstring (memory in long runs).
     "malloc_mmap_threshold": 0,
@@ -156,10 +156,10 @@ class DepthNode:
         self.health = ProcessHealth()
         self.updater = diagnostic_updater.Updater()
         self.updater.setHardwareID("mdr_depth")
-        self.updater.period = p["diagnostic_period"]
+        self.updater.period = p["diagnostics_period"]
         self.updater.add("depth", self._diagnostics)
         # also without input (the worker updates after each frame): "no frame processed yet"
-        self.diag_timer = rospy.Timer(rospy.Duration(max(0.1, p["diagnostic_period"])),
+        self.diag_timer = rospy.Timer(rospy.Duration(max(0.1, p["diagnostics_period"])),
                                       lambda _e: update_diagnostics(self.updater), reset=True)
         self.worker = threading.Thread(target=self._work, name="depth_elas", daemon=True)
         self.worker.start()
