@@ -1,4 +1,4 @@
-"""Bad input to each node (issue 8, item 3): a clear throttled log line naming the problem, no
+"""Bad input to each node: a clear throttled log line naming the problem, no
 crash, the next valid message is processed, and no NaN or absurd point reaches the map.
 
 Not repeated here (tests/test_depth_node.py, tests/test_fusion_node.py cover them): unsupported
@@ -378,7 +378,7 @@ def test_depth_node_skips_pairs_whose_pose_is_nan_infinite_or_a_zero_quaternion(
 
 
 def test_bad_input_logs_are_throttled_per_kind_and_wording(monkeypatch):
-    """Issue 8 item 3: a flood of bad input gives one log line per kind and wording per period (the
+    """A flood of bad input gives one log line per kind and wording per period (the
     numbers in it aside), with the running count, and a different problem is still reported."""
     import time as _time
     import rospy

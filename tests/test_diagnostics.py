@@ -1,4 +1,4 @@
-"""Diagnostics (issue 8 item 6): the three nodes report rate, latency, drops, CPU % and RSS (and
+"""Diagnostics: the three nodes report rate, latency, drops, CPU % and RSS (and
 the pose node its tracking state) on /diagnostics through diagnostic_updater, on a live run of
 mdr.launch over a small simulated bag."""
 from __future__ import annotations

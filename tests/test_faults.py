@@ -1,4 +1,4 @@
-"""Node faults (issue 8, item 2) on the live three-node launch playing the sample bag (the README
+"""Node faults on the live three-node launch playing the sample bag (the README
 demo's office sequence, 752x480, 20 Hz, 30 s; conftest ``sample_bag``) with the shipped configs.
 
 One roslaunch of ``mdr.launch`` (ground-truth poses, ``respawn:=true``, ``loop:=true``,

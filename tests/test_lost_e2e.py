@@ -1,4 +1,4 @@
-"""Tracking LOST end to end (issue 8, item 2): the real ORB tracker in the launch goes LOST, the
+"""Tracking LOST end to end: the real ORB tracker in the launch goes LOST, the
 fusion node integrates nothing stamped while LOST (no smeared map) and resumes after relocalization.
 
 The bag is the sample bag (the README demo's office sequence, 752x480, 20 Hz; conftest

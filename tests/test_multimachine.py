@@ -1,4 +1,4 @@
-"""Multi-machine (issue 8 item 4): ROS 1 is the distributed engine, so the depth node can run on
+"""Multi-machine: ROS 1 is the distributed engine, so the depth node can run on
 another processing unit. The launch file places nodes by argument (machine tags) and ships an
 env-loader; a test runs the depth node in its own network namespace (a second "computer" joined to
 the first by a veth pair, addresses only inside the test's two namespaces) and the pipeline maps

@@ -1,4 +1,4 @@
-"""Planners (issue 8 item 1): the grid planner (mdr_slam.nav), the move_base configuration, and
+"""Planners: the grid planner (mdr_slam.nav), the move_base configuration, and
 the contract a planner relies on: on the sample map (the README demo's sample bag, mapped by the
 offline pipeline with its true poses) the occupancy grid agrees with the map cloud (frame,
 resolution, origin), A* finds a path between far-apart cells of the office and none into an

@@ -604,7 +604,7 @@ def _loop_map(drift_deg=0.6, n_kf=24, seed=5):
 
 
 def test_global_ba_closes_drifted_loop():
-    """Global BA after a loop (#6): a 24-keyframe loop with 0.6 deg yaw + 1 cm drift per
+    """Global BA after a loop: a 24-keyframe loop with 0.6 deg yaw + 1 cm drift per
     keyframe (14 deg, ~0.5 m at the end) is pulled onto the truth by the shared observations."""
     from mdr_slam.pose.optimizer import global_bundle_adjustment
 
@@ -844,7 +844,7 @@ def test_set_bad_points_clears_every_observation_and_nothing_else():
 
 
 def test_pose_graph_weights_put_the_loop_error_on_weak_links():
-    """Loop pose graph with edge information (#6): when the drift comes from one weak link
+    """Loop pose graph with edge information: when the drift comes from one weak link
     (a stretch tracked on a few blank-wall corners), weighting edges by their shared points
     moves the correction there instead of bending the well-tracked rest of the loop."""
     steps, true = _square_loop()
@@ -1151,7 +1151,7 @@ def test_optical_flow_carries_tracking_over_a_blank_wall(office_blank_wall, monk
     blank wall at 10 Hz (its corners are noise); the Lucas-Kanade fallback follows the last
     frame's map points there and every frame is tracked, with the tracks kept as keypoints that
     observe those map points. With the texture weights (the default) descriptor matching alone
-    holds the wall (stop 27)."""
+    holds the wall."""
     from mdr_slam.io import Trajectory
     from mdr_slam.pipeline import load_params
     from mdr_slam.pose.tracking import Tracking
@@ -1282,7 +1282,7 @@ def test_loop_rotation_sigma_predicts_the_fit_error_and_gates_edge_loops():
 def test_motion_prior_holds_the_pose_on_a_single_small_patch():
     """Features on one small far patch: a lateral shift and a yaw move them alike, so the pose-only
     optimization drifts along that direction; the constant-velocity prior (frame.prior) keeps it
-    near the prediction. Tested with the shipped defaults (on since stop 22) at 20 Hz."""
+    near the prediction. Tested with the shipped defaults (on by default) at 20 Hz."""
     from mdr_slam.pose.system import DEFAULT_PARAMS
     acc, ang = float(DEFAULT_PARAMS["motion_prior_acc"]), float(DEFAULT_PARAMS["motion_prior_ang_acc"])
     assert acc > 0 and ang > 0, (acc, ang)
@@ -1378,7 +1378,7 @@ def _patch_wall(T_cw, tex, res, z_wall, cam, rng, noise=2.0):
 
 
 def test_faint_shading_settles_the_pose_when_features_lie_on_one_patch():
-    """The simulated garage's failure (#6), reproduced: a blank wall 5.5 m away whose only ORB
+    """The simulated garage's failure, reproduced: a blank wall 5.5 m away whose only ORB
     texture is one 1.2 m poster, so every feature lies on a ~100 px patch and a yaw and a
     sideways step move them alike. Walking sideways while turning (3 cm and 0.3 deg per frame,
     40 frames), the tracker drifted by the full turn without the wall's faint shading; with
@@ -1466,7 +1466,7 @@ def test_disparity_offset_check_finds_the_principal_point_difference(room, seque
 
 
 def test_kitti_clip_tracked_with_calib_txt():
-    """Real KITTI 06 (51 frames, 60 m) with calib.txt as shipped. Until stop 25 the features sat on
+    """Real KITTI 06 (51 frames, 60 m) with calib.txt as shipped. Before the features were spread over the image they sat on
     the most contrasted objects (trees, a facade 15-50 m away, none on the road and grass near the
     car): far stereo depths set the scale, the trajectory came out 1.2 % long and the ATE 0.21 m
     (0.056 m only with a -0.2 px principal point correction). Spread over the image as ORB-SLAM2
@@ -1504,7 +1504,7 @@ def test_check_stereo_offset_script_reads_kittis_offset(root_dir):
                   r"\(([-+.\d]+) \+- [.\d]+ px at scale 1\)", r.stdout)
     assert m, r.stdout
     e, a, e1 = (float(x) for x in m.groups())
-    # measured -0.205 (a = 1.0057) and -0.102 (-0.160 before stop 25's spread features): the two
+    # measured -0.205 (a = 1.0057) and -0.102 (-0.160 before the features were spread): the two
     # fits disagree, so by the script's own rule the offset is not to be trusted
     assert -0.3 < e < -0.1 and -0.2 < e1 < -0.05 and abs(a - 1.0) < 0.01
     assert re.search(r"-> doffs [-+.\d]+ px: right cx = 60[12]\.\d+ \(left cx 601.8873\)", r.stdout)

@@ -1,4 +1,4 @@
-"""A looping bag's lap boundary (issue 8, items 3 and 5): the last messages of a lap delivered
+"""A looping bag's lap boundary: the last messages of a lap delivered
 after the clock jumped back to the start.
 
 Found in 10-minute looped runs of the sample under bursty CPU load: the map jumped by up to 15 k

@@ -61,7 +61,7 @@ DEFAULTS = {
     "normal_radius": 0.0,           # m; 0 = 4 voxels
     "normal_max_nn": 16,            # normal_method knn only
     "normal_method": "grid",        # grid: PCA over grid cells of normal_radius; knn: Open3D
-    "merge_duplicates": True,       # fold a surface's stray samples along its normal (#8)
+    "merge_duplicates": True,       # fold a surface's stray samples along its normal
     "dup_normal": 0.0,              # m, along the normal; 0 = 1.5 voxels
     "dup_lateral": 0.0,             # m, across the normal; 0 = 1 voxel
     "dup_radius": 0.0,              # m, or closer than this in any direction; 0 = half a voxel
