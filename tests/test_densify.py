@@ -139,7 +139,7 @@ def test_filter_publishes_planar_fills_flagged_with_zero_observations():
     fB = cam.fx * cam.baseline
     Z_true = np.full((120, 160), 3.0)
     params = {"tau": 0.01, "min_obs": 3, "process_noise": 0.0, "kf_max_frames": 100,
-              "densify_every": 1, "densify_support": "all"}
+              "densify_every": 1, "densify_support": "all", "stride": 1}
     outs = {}
     for mode in ("off", "plane"):
         f = DepthFilter(cam, dict(params, densify=mode))

@@ -92,7 +92,7 @@ def test_elas_recovers_known_disparity_of_textured_pair():
 def test_static_scene_converges_with_shrinking_variance():
     cam = tiny_camera()
     rng = np.random.default_rng(0)
-    f = DepthFilter(cam, {"process_noise": 0.0, "tau": 0.01, "min_obs": 3,
+    f = DepthFilter(cam, {"stride": 1, "process_noise": 0.0, "tau": 0.01, "min_obs": 3,
                           "kf_max_frames": 100, "kf_translation": 10.0})
     T = pose()
     Z1, _ = noisy_measurement(cam, T, rng)
@@ -119,7 +119,7 @@ def test_static_scene_converges_with_shrinking_variance():
 def test_outlier_is_gated_counted_and_not_fused():
     cam = tiny_camera()
     rng = np.random.default_rng(2)
-    f = DepthFilter(cam, {"process_noise": 0.0, "kf_translation": 10.0, "kf_max_frames": 100})
+    f = DepthFilter(cam, {"stride": 1, "process_noise": 0.0, "kf_translation": 10.0, "kf_max_frames": 100})
     T = pose()
     for i in range(6):
         f.process(0.1 * i, T, *noisy_measurement(cam, T, rng, sigma_d=0.0001))
@@ -141,7 +141,7 @@ def test_outlier_is_gated_counted_and_not_fused():
     assert np.all(dn[blob] == 1) and np.all(dn[~blob] == 0)
     np.testing.assert_array_equal(f.keyframe.n_obs, n_obs_before)
     # a pixel rejected far more often than accepted is re-initialized from the new evidence
-    f2 = DepthFilter(cam, {"process_noise": 0.0, "reinit_min_rejections": 3, "reinit_ratio": 2.0,
+    f2 = DepthFilter(cam, {"stride": 1, "process_noise": 0.0, "reinit_min_rejections": 3, "reinit_ratio": 2.0,
                            "kf_translation": 10.0, "kf_max_frames": 100})
     f2.process(0.0, T, *noisy_measurement(cam, T, rng, sigma_d=0.0001))
     for i in range(1, 4):
@@ -154,7 +154,7 @@ def test_outlier_is_gated_counted_and_not_fused():
 def test_keyframe_switch_carries_converged_points_reprojected():
     cam = tiny_camera()
     rng = np.random.default_rng(3)
-    f = DepthFilter(cam, {"process_noise": 0.0, "tau": 0.01, "kf_translation": 10.0,
+    f = DepthFilter(cam, {"stride": 1, "process_noise": 0.0, "tau": 0.01, "kf_translation": 10.0,
                           "kf_max_frames": 100, "carry_tau": 0.01})
     T0 = pose()
     for i in range(12):
@@ -184,7 +184,7 @@ def test_keyframe_switch_carries_converged_points_reprojected():
 def test_automatic_keyframe_selection_and_pose_correction():
     cam = tiny_camera()
     rng = np.random.default_rng(4)
-    f = DepthFilter(cam, {"kf_translation": 0.1, "kf_rotation_deg": 5.0, "kf_max_frames": 5,
+    f = DepthFilter(cam, {"stride": 1, "kf_translation": 0.1, "kf_rotation_deg": 5.0, "kf_max_frames": 5,
                           "kf_min_overlap": 0.5})
     T = pose()
     ids = [f.process(0.1 * i, T, *noisy_measurement(cam, T, rng)).keyframe_id for i in range(11)]
@@ -221,7 +221,7 @@ def test_keyframe_correction_moves_a_later_keyframe_rigidly_with_the_pose_keyfra
     from scipy.spatial.transform import Rotation
     cam = tiny_camera()
     rng = np.random.default_rng(5)
-    f = DepthFilter(cam, {})
+    f = DepthFilter(cam, {"stride": 1})
     T_event = pose(x=0.0)                    # the pose keyframe (a frame the depth node skipped)
     T_ours = pose(x=0.06, yaw_deg=2.0)       # the next frame: where our keyframe starts
     for i in range(5):
@@ -235,7 +235,7 @@ def test_keyframe_correction_moves_a_later_keyframe_rigidly_with_the_pose_keyfra
     # replacing the pose instead (the old behaviour) would be off by the motion between the frames
     assert np.linalg.norm((C @ T_event)[:3, 3] - (C @ T_ours)[:3, 3]) > 0.05
     # same frame: identical to replacing the pose
-    g = DepthFilter(cam, {})
+    g = DepthFilter(cam, {"stride": 1})
     g.process(0.0, T_event, *noisy_measurement(cam, T_event, rng), new_keyframe=True, keyframe_id=3)
     g.correct_keyframe(T_event, C @ T_event, keyframe_id=3)
     np.testing.assert_allclose(g.keyframe.T_map_kf, C @ T_event, atol=1e-9)
@@ -244,7 +244,7 @@ def test_keyframe_correction_moves_a_later_keyframe_rigidly_with_the_pose_keyfra
 def test_fill_holes_initializes_empty_keyframe_pixels():
     cam = tiny_camera()
     rng = np.random.default_rng(5)
-    f = DepthFilter(cam, {"kf_translation": 10.0, "kf_max_frames": 100})
+    f = DepthFilter(cam, {"stride": 1, "kf_translation": 10.0, "kf_max_frames": 100})
     T = pose()
     Z, var = noisy_measurement(cam, T, rng, sigma_d=0.05)
     Z[:, 20:40] = np.nan                       # a low-texture hole at the keyframe
@@ -265,7 +265,7 @@ def test_elas_only_baseline_returns_every_valid_pixel():
     Z, var = noisy_measurement(cam, pose(), rng)
     Z[rng.random(Z.shape) < 0.3] = np.nan
     inten = rng.integers(0, 255, Z.shape).astype(np.uint8)
-    f = DepthFilter(cam, {"temporal": False})
+    f = DepthFilter(cam, {"stride": 1, "temporal": False})
     for i in range(2):
         out = f.process(0.1 * i, pose(), Z, var, intensity=inten)
         n = int(np.count_nonzero(np.isfinite(Z)))
@@ -291,7 +291,7 @@ def test_stride_and_bilinear_options():
     assert len(out) > 0.8 * 24 * 32
     np.testing.assert_allclose(map_z(out, T), PLANE_Z, atol=0.05)
     with pytest.raises(ValueError):
-        DepthFilter(cam, {"interpolation": "cubic"})
+        DepthFilter(cam, {"stride": 1, "interpolation": "cubic"})
     with pytest.raises(ValueError):
         f.process(1.0, np.full((4, 4), np.nan), *noisy_measurement(cam, T, rng))
     with pytest.raises(ValueError):
@@ -339,7 +339,7 @@ def test_stereo_depth_end_to_end_on_a_synthetic_wall():
         np.testing.assert_array_equal(oa.variance, ob.variance)
     assert ob.timings["total"] >= ob.timings["elas"] + ob.timings["filter"] - 1e-9
     # ELAS-only through the same entry point, ELAS params flat on the command line style
-    sd0 = StereoDepth(cam, {"temporal": False, "elas_disp_max": 48})
+    sd0 = StereoDepth(cam, {"temporal": False, "elas_disp_max": 48, "stride": 1})
     assert sd0.matcher.params["disp_max"] == 48
     out0 = sd0.process(0.0, left, right, np.eye(4))
     assert len(out0) == int(np.count_nonzero(np.isfinite(out0.depth)))
@@ -357,7 +357,7 @@ def test_stereo_depth_rectifies_raw_images():
     cam = StereoCamera(CameraModel(w, h, K, D, np.eye(3), Pl), CameraModel(w, h, K, D, np.eye(3), Pr))
     assert not cam.is_rectified
     left, right = _textured_pair(h, w, 16, seed=3)
-    sd = StereoDepth(cam, {"temporal": False, "elas": {"disp_max": 64}})
+    sd = StereoDepth(cam, {"temporal": False, "elas": {"disp_max": 64}, "stride": 1})
     Z, var, grey, t = sd.measure(left, right)
     rl, rr = cam.rectify(left, right)
     np.testing.assert_array_equal(grey, rl)

@@ -41,7 +41,7 @@ __all__ = ["DepthFilter", "DepthOutput", "KeyFrameDepth", "FILTER_DEFAULTS", "re
 
 FILTER_DEFAULTS: Dict[str, object] = {
     "temporal": True,           # False: the paper's ELAS-only baseline (every valid pixel)
-    "stride": 1,                # state on every stride-th pixel (speed vs density)
+    "stride": 2,                # state on every stride-th pixel (speed vs density)
     # keyframe selection
     "kf_translation": 0.30,     # m moved since the keyframe
     "kf_rotation_deg": 15.0,    # deg turned since the keyframe

@@ -62,7 +62,7 @@ DEFAULTS = {
     "pose_source_topic": "mdr/pose",
     "tf_timeout": 0.1,              # s to wait for tf / for the pose of an image stamp
     "max_future_stamp": 1.0,        # s (sim time): pairs and tf stamped further ahead of the clock are dropped
-    "max_rate": 0.0,                # Hz of pairs processed (by stamp); 0 = every pair
+    "max_rate": 12.0,               # Hz of pairs processed (by stamp); 0 = every pair
     "tracking_state_topic": "mdr/tracking_state",    # skip pairs while LOST ("" = never)
     "pose_max_gap": 0.25,           # s between two cached poses to interpolate between them
     "keyframe_topic": "mdr/keyframes",

@@ -94,7 +94,7 @@ DEFAULTS = {
     # files
     "map_path": "~/.ros/mdr_map.ply",
     "load_map": "",
-    "resume": False,                # reload map_path after an unclean exit (see the module doc)
+    "resume": True,                 # reload map_path after an unclean exit (see the module doc)
     "autosave": True,
     "autosave_period": 60.0,        # s; 0 = only on shutdown
     "mesh_path": "~/.ros/mdr_mesh.ply",
