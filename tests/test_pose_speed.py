@@ -175,11 +175,11 @@ def test_bundle_adjust_first_step_equals_dense_gauss_newton():
 
 
 def test_ba_worker_process_matches_in_thread_and_recovers():
-    """optimizer.BAWorker (local BA in a child process): same answer as in-process, abort stops
+    """ba_process.BAWorker (local BA in a child process): same answer as in-process, abort stops
     it early, a killed child is replaced, close() leaves no process behind."""
     import os
     import signal
-    from mdr_slam.pose.optimizer import BAWorker
+    from mdr_slam.pose.ba_process import BAWorker
     rng = np.random.RandomState(5)
     M, C = 1500, 5   # big enough that the abort signal lands long before 10 iterations end
     P, Ts, cam_idx, pt_idx, obs, (fx, fy, cx, cy, bf) = _stereo_ba_scene(rng, M, C, 0.5)
@@ -215,7 +215,8 @@ def test_ba_worker_process_matches_in_thread_and_recovers():
 def test_global_ba_in_a_worker_process_matches_in_thread():
     """LoopClosing's global BA solved in a BAWorker child (threads: the solver's long numpy/scipy
     steps then never hold the tracking thread's GIL) writes back the same map."""
-    from mdr_slam.pose.optimizer import BAWorker, global_bundle_adjustment
+    from mdr_slam.pose.ba_process import BAWorker
+    from mdr_slam.pose.optimizer import global_bundle_adjustment
     from test_pose import _loop_map
     ref, _ = _loop_map()
     got, _ = _loop_map()

@@ -1,11 +1,12 @@
-"""Child process that solves bundle adjustments for LocalMapping and LoopClosing (see
-optimizer.BAWorker).
+"""Child process that solves bundle adjustments for LocalMapping and LoopClosing (the parent's
+side: ba_process.BAWorker).
 
 Protocol on its stdin/stdout: the parent writes pickled ``(name, args, kwargs)``, name a key of
-``optimizer.BA_SOLVERS`` (``bundle_adjust``: local BA, ``bundle_adjust_sparse``: global BA); the
+``ba_process.BA_SOLVERS`` (``bundle_adjust``: local BA, ``bundle_adjust_sparse``: global BA); the
 child answers the pickled result or an ``Exception``. SIGUSR1 asks the solve in progress to stop
-after the current iteration (ORB-SLAM2's abort when a new keyframe arrives). It is a plain ``python -m`` process, not multiprocessing, so the parent's main
-script is never re-imported in the child. EOF on stdin (the parent is gone) ends it.
+after the current iteration (ORB-SLAM2's abort when a new keyframe arrives). It is a plain
+``python -m`` process, not multiprocessing, so the parent's main script is never re-imported in
+the child. EOF on stdin (the parent is gone) ends it.
 """
 from __future__ import annotations
 
@@ -22,7 +23,8 @@ def main() -> int:
     out = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)                      # stray prints/warnings go to stderr, not into the protocol
     inp = os.fdopen(os.dup(0), "rb")
-    from mdr_slam.pose.optimizer import BA_SOLVERS
+    # imported after the redirect: whatever its import prints stays out of the protocol
+    from mdr_slam.pose.ba_process import BA_SOLVERS
     flag = {"abort": False}
 
     def on_abort(signum, frame):

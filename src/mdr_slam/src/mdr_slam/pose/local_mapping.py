@@ -86,7 +86,7 @@ class LocalMapping:
         self.thread: Optional[threading.Thread] = None
         self.n_processed = 0
         self.last_ba_ms = 0.0
-        self.ba_worker = None      # optimizer.BAWorker: local BA in a child process (threads only)
+        self.ba_worker = None      # ba_process.BAWorker: local BA in a child process (threads only)
 
     # ------------------------------------------------------------------ queue / thread
     def insert_keyframe(self, kf) -> None:
@@ -116,7 +116,7 @@ class LocalMapping:
 
     def start(self) -> None:
         if self.p.get("ba_process", False):
-            from .optimizer import BAWorker
+            from .ba_process import BAWorker
             self.ba_worker = BAWorker()
             self.ba_worker.prewarm()
         self.thread = threading.Thread(target=self._run, name="LocalMapping", daemon=True)

@@ -42,6 +42,7 @@ from ..geometry import inv_T, rotation_angle
 from .matcher import ORBmatcher, _unique_by
 from .optimizer import Optimizer, normalize_pose
 from .orb import TH_LOW, hamming_matrix
+from .params import DEFAULT_PARAMS
 
 __all__ = ["LoopClosing", "ransac_se3", "rotation_sigma_deg", "loop_rotation_check"]
 
@@ -131,8 +132,8 @@ class LoopClosing:
         from .vocabulary import KeyFrameDatabase, load_vocabulary
         self.system = system
         self.map = system.map
-        self.p = params
-        self.voc = load_vocabulary(params.get("vocabulary") or None)
+        self.p = dict(DEFAULT_PARAMS, **params)   # the defaults of one place, not inline ones
+        self.voc = load_vocabulary(self.p["vocabulary"] or None)
         self.db = KeyFrameDatabase(self.voc)
         self.matcher = ORBmatcher(check_orientation=True)
         self.queue = deque()
@@ -142,7 +143,7 @@ class LoopClosing:
         self.corrections = []
         self.last_loop_kf_id = -10 ** 9
         self.consistent_groups: List[tuple] = []   # (set of kf ids, consistency count)
-        self.min_consistency = int(params.get("loop_consistency", 2))
+        self.min_consistency = int(self.p["loop_consistency"])
         self.min_inliers = 20
         self.loops: List[tuple] = []               # accepted (current kf id, loop kf id)
         self.global_ba_runs: List[dict] = []       # global_bundle_adjustment summaries (+ ms)
@@ -206,7 +207,7 @@ class LoopClosing:
     def keep_image(self, kf_id: int, image: np.ndarray) -> None:
         """Keep a keyframe's left image at half and quarter resolution (90 + 22 kB at 752x480)
         for the proximity loop path (``loop_proximity``); called by System after tracking."""
-        if not self.p.get("loop_proximity", True) or image is None or image.ndim != 2:
+        if not self.p["loop_proximity"] or image is None or image.ndim != 2:
             return
         import cv2
         half = cv2.pyrDown(image)
@@ -223,14 +224,14 @@ class LoopClosing:
             cand = self.detect_loop(kf, bow)
             if cand is not None:
                 closed = self.try_close(kf, cand)
-            if not closed and self._exclude and self.p.get("loop_proximity", True):
+            if not closed and self._exclude and self.p["loop_proximity"]:
                 closed = self.try_proximity(kf)
             self.db.add(kf.id, bow)
             if kf.id % 20 == 0:   # images of culled keyframes are no longer candidates
                 for k in [k for k in list(self.images) if k not in self.map.keyframes or
                           self.map.keyframes[k].bad]:   # list(): tracking adds meanwhile
                     self.images.pop(k, None)
-        if closed and self.p.get("global_ba", True):
+        if closed and self.p["global_ba"]:
             self.run_global_ba()
 
     def _gba_abort(self) -> bool:
@@ -248,15 +249,15 @@ class LoopClosing:
         from .optimizer import global_bundle_adjustment
         t0 = time.perf_counter()
         worker = None
-        if self.system.threads and self.p.get("global_ba_process", True):
+        if self.system.threads and self.p["global_ba_process"]:
             # a child process per global BA (they are rare: its ~60 MB are not kept); in this
             # thread the solver's long numpy/scipy steps stalled tracking (frames dropped live)
-            from .optimizer import BAWorker
-            worker = BAWorker(nice=int(self.p.get("global_ba_nice", 10)))
+            from .ba_process import BAWorker
+            worker = BAWorker(nice=int(self.p["global_ba_nice"]))
         try:
             res = global_bundle_adjustment(   # the first keyframe holds the map frame (ORB-SLAM2)
-                self.map, iterations=int(self.p.get("global_ba_iterations", 20)),
-                min_kf_points=int(self.p.get("global_ba_min_kf_points", 20)),
+                self.map, iterations=int(self.p["global_ba_iterations"]),
+                min_kf_points=int(self.p["global_ba_min_kf_points"]),
                 abort=self._gba_abort if self.system.threads else None,
                 lock_solve=not self.system.threads, worker=worker)
         finally:
@@ -288,7 +289,7 @@ class LoopClosing:
         near = set(conn)
         for k in conn:
             near |= set(mp.keyframes[k].connections)
-        min_age = float(self.p.get("loop_min_age", 3.0))
+        min_age = float(self.p["loop_min_age"])
         exclude = near | {kf.id} | {k for k in self.db.bows if k > kf.id - 5} | \
             {k for k in self.db.bows if k in mp.keyframes and
              kf.stamp - mp.keyframes[k].stamp < min_age}
@@ -358,11 +359,11 @@ class LoopClosing:
         dist = np.linalg.norm(Po - T[:3, 3], axis=1)
         ang = np.degrees(np.arccos(np.clip(Zo @ T[:3, 2], -1.0, 1.0)))
         path = cum[pos[kf.id]] - cum[[pos[k] for k in old]]
-        radius = np.minimum(float(self.p.get("loop_proximity_radius", 0.5)) +
-                            float(self.p.get("loop_max_drift", 0.3)) * path,
-                            float(self.p.get("loop_proximity_max_radius", 2.0)))
-        ok = (dist <= radius) & (ang <= float(self.p.get("loop_proximity_angle_deg", 45.0))) & \
-            (path >= float(self.p.get("loop_proximity_min_path", 2.0)))
+        radius = np.minimum(float(self.p["loop_proximity_radius"]) +
+                            float(self.p["loop_max_drift"]) * path,
+                            float(self.p["loop_proximity_max_radius"]))
+        ok = (dist <= radius) & (ang <= float(self.p["loop_proximity_angle_deg"])) & \
+            (path >= float(self.p["loop_proximity_min_path"]))
         sel = old[ok][np.argsort(dist[ok])][:60]   # bounded cost: ~0.3 ms per response
         q = self.images[kf.id][1].astype(np.float32)
         win = cv2.createHanningWindow(q.shape[::-1], cv2.CV_32F)
@@ -370,9 +371,9 @@ class LoopClosing:
         for k in sel.tolist():
             (dx, dy), r = cv2.phaseCorrelate(q, self.images[k][1].astype(np.float32), win)
             out.append((float(r), int(k), (2.0 * dx, 2.0 * dy)))
-        th = float(self.p.get("loop_proximity_min_response", 0.3))
+        th = float(self.p["loop_proximity_min_response"])
         out = sorted([o for o in out if o[0] >= th], key=lambda o: -o[0])
-        return out[: int(self.p.get("loop_proximity_candidates", 2))]
+        return out[: int(self.p["loop_proximity_candidates"])]
 
     def verify_proximity(self, kf, cand, shift=(0.0, 0.0)):
         """Appearance-free geometric verification of a proximity candidate: kf's stereo keypoints
@@ -388,22 +389,22 @@ class LoopClosing:
         if kf.id not in self.images or cand.id not in self.images:
             return None
         self.proximity_tries += 1
-        min_inl = int(self.p.get("loop_proximity_min_inliers", 40))
-        weak = int(self.p.get("loop_proximity_weak_inliers", 0))
+        min_inl = int(self.p["loop_proximity_min_inliers"])
+        weak = int(self.p["loop_proximity_weak_inliers"])
         if weak > 0:
             min_inl = min(min_inl, weak)
         fwd = self._lk_pnp(kf, cand, shift, min_inl)
         if fwd is None:
             return None
         T_ck, sel, uv = fwd
-        if self.p.get("loop_proximity_two_way", True):
+        if self.p["loop_proximity_two_way"]:
             back = self._lk_pnp(cand, kf, (-shift[0], -shift[1]), min_inl)
             if back is not None:   # cand's side gave a pose: the two must agree
                 D = back[0] @ T_ck   # T_kc T_ck: identity when they agree
                 moved = float(np.linalg.norm(D[:3, 3]))
                 ang = float(np.degrees(rotation_angle(D)))
-                if moved > float(self.p.get("loop_proximity_two_way_m", 0.5)) or \
-                        ang > float(self.p.get("loop_proximity_two_way_deg", 2.0)):
+                if moved > float(self.p["loop_proximity_two_way_m"]) or \
+                        ang > float(self.p["loop_proximity_two_way_deg"]):
                     self.one_way.append((kf.id, cand.id, moved, ang))
                     return None
         S = cand.T_wc @ T_ck @ kf.T_cw   # corrected kf pose (cand T_wc T_ck) times the old inverse
@@ -449,7 +450,7 @@ class LoopClosing:
         ``loop_proximity_weak_consistency`` weak ones (keyframes at most 4 ids apart, each to
         the next) agree with it: the current keyframe corrected by each lies within 0.1 m and
         3 deg of its correction by S."""
-        need = int(self.p.get("loop_proximity_weak_consistency", 2))
+        need = int(self.p["loop_proximity_weak_consistency"])
         T = S @ kf.T_wc
         hist = [(k, S_) for k, S_ in self._weak if kf.id - k <= 4 * need]
         ok = 0
@@ -473,7 +474,7 @@ class LoopClosing:
             S, n_inl, kp, uv = res
             if not self.plausible_correction(kf, cand, S):
                 continue
-            if n_inl < int(self.p.get("loop_proximity_min_inliers", 40)) and \
+            if n_inl < int(self.p["loop_proximity_min_inliers"]) and \
                     not self._weak_consistent(kf, S):
                 continue
             # point fusion: kf's map points whose track ends on a cand keypoint with a map point
@@ -514,9 +515,9 @@ class LoopClosing:
         moved = float(np.linalg.norm(S[:3, :3] @ p + S[:3, 3] - p))
         cos = np.clip((np.trace(S[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
         rot = float(np.degrees(np.arccos(cos)))
-        allowed = (float(self.p.get("loop_max_drift", 0.3)) +
+        allowed = (float(self.p["loop_max_drift"]) +
                    2.0 * np.sin(np.radians(rot) / 2.0)) * max(path, 1.0)
-        ok = moved <= allowed and rot <= float(self.p.get("loop_max_rotation_deg", 45.0))
+        ok = moved <= allowed and rot <= float(self.p["loop_max_rotation_deg"])
         if not ok:
             self.rejected.append((kf.id, cand.id, moved, rot, path))
         return ok
@@ -548,13 +549,13 @@ class LoopClosing:
         S, mask = ransac_se3(A, B, th)
         if S is None or mask.sum() < self.min_inliers:
             return None
-        if self.p.get("loop_reprojection_refine", True) and \
+        if self.p["loop_reprojection_refine"] and \
                 float(np.median(z[mask])) > kf.th_depth:   # far points: their 3-D fit is poor
             S = self.refine_by_reprojection(kf, S, a[i][mask], B[mask])
         ok, sig, turn = loop_rotation_check(
-            A[mask], B[mask], S, float(self.p.get("loop_max_rot_sigma_deg", 1.0)),
-            float(self.p.get("loop_rot_significance", 5.0)),
-            float(self.p.get("loop_rot_sigma_cap_deg", 0.0)))
+            A[mask], B[mask], S, float(self.p["loop_max_rot_sigma_deg"]),
+            float(self.p["loop_rot_significance"]),
+            float(self.p["loop_rot_sigma_cap_deg"]))
         if not ok:
             self.ill_conditioned.append((kf.id, cand.id, int(mask.sum()), sig, turn))
             return None
@@ -624,7 +625,7 @@ class LoopClosing:
         poses = {k.id: k.T_wc for k in mp.good_keyframes()}
         # edge information: with pose_graph_weights, shared map points / 100 (a link tracked on
         # a blank wall over 20 points is weaker than one over 500), loop edges by their inliers
-        weighted = bool(self.p.get("pose_graph_weights", True))
+        weighted = bool(self.p["pose_graph_weights"])
 
         def wt(n):
             return max(float(n), 15.0) / 100.0 if weighted else None

@@ -13,16 +13,15 @@ Huber noise, BetweenFactorPose3, Levenberg-Marquardt), as the brief asks: well-k
 from __future__ import annotations
 
 import itertools
-import os
-import sys
 from typing import Dict, List, Optional, Tuple
 
 import numpy as np
+import scipy.sparse as sp
 from scipy.spatial.transform import Rotation
 
-from ..geometry import inv_T, make_T
+from ..geometry import inv_T
 
-__all__ = ["Optimizer", "BAWorker", "bundle_adjust", "normalize_pose", "CHI2_MONO", "CHI2_STEREO",
+__all__ = ["Optimizer", "bundle_adjust", "normalize_pose", "CHI2_MONO", "CHI2_STEREO",
            "project_residuals", "bundle_adjust_sparse", "global_bundle_adjustment"]
 
 CHI2_MONO = 5.991
@@ -130,7 +129,6 @@ def _robust_lm(Ts, fixed, P, cam_idx, pt_idx, obs, stereo, info, intr, iteration
     """The LM loop of :func:`bundle_adjust` and :func:`bundle_adjust_sparse`: W (6 C x 3 M) as a
     dense array (few cameras: one BLAS product) or as scipy.sparse (many cameras). Returns
     (Ts, P, active observations, residuals at the result)."""
-    import scipy.sparse as sp
     fx, fy, cx, cy, bf = intr
     Ts = np.array(Ts, dtype=float)
     P = np.array(P, dtype=float)
@@ -306,106 +304,6 @@ def _exp_se3_left(dx: np.ndarray, T: np.ndarray) -> np.ndarray:
     return out
 
 
-class BAWorker:
-    """Solves bundle adjustments in one child process (``python -m mdr_slam.pose.ba_worker``):
-    LocalMapping's local BA (``ba_process``) and LoopClosing's global BA (``global_ba_process``).
-
-    Measured on this 2-core machine under heavy load (load average 8-10; KITTI clip, a captured
-    local BA solved in a loop next to tracking): in a thread the GIL throttles the BA to ~1.2
-    solves/s, in a process it runs ~4.4/s, with tracking ~100 ms/frame either way. In the live
-    System (threads=True) at 10-20 Hz the process BA shortened the longest back-pressure waits on
-    KITTI but, with no spare core, took CPU from tracking on the 20 Hz sample (median frame
-    time up); hence System's ``ba_process`` is off by default: use it where a core is free.
-    Only the arrays of the problem cross the pipe (~1 MB); the map stays in the tracking process.
-    ``abort`` (a new keyframe is waiting) becomes SIGUSR1, checked by the solver between
-    iterations as in-process. A dead child is restarted; if it cannot start, BA falls back to
-    the calling thread for good (logged once).
-    """
-
-    def __init__(self, nice: int = 0):
-        import threading
-        self.nice = int(nice)   # the child's nice increment (> 0: it yields the CPU to tracking)
-        self._proc = None
-        self._lock = threading.Lock()
-        self.failed = False
-
-    def _ensure(self):
-        if self._proc is None or self._proc.poll() is not None:
-            import subprocess
-            env = dict(os.environ)
-            env["PYTHONPATH"] = os.pathsep.join([p for p in sys.path if p] +
-                                                [env.get("PYTHONPATH", "")])
-            env.setdefault("OPENBLAS_NUM_THREADS", "1")   # one core's worth, no BLAS spinning
-            env["MDR_BA_NICE"] = str(max(0, self.nice))
-            self._proc = subprocess.Popen([sys.executable, "-m", "mdr_slam.pose.ba_worker"],
-                                          stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env)
-            self._ready = False
-        return self._proc
-
-    def prewarm(self) -> None:
-        """Start the child now (interpreter + numpy/scipy imports) instead of at the first BA."""
-        with self._lock:
-            try:
-                self._ensure()
-            except Exception as exc:   # noqa: BLE001 - any start failure means: BA in-thread
-                self._fail(exc)
-
-    def _fail(self, exc) -> None:
-        if not self.failed:
-            import logging
-            logging.getLogger(__name__).warning(
-                "local BA process unavailable (%s): running BA in the LocalMapping thread", exc)
-        self.failed = True
-        self._kill()
-
-    def _kill(self) -> None:
-        proc, self._proc = self._proc, None
-        if proc is not None and proc.poll() is None:
-            proc.kill()
-            proc.wait()
-
-    def run(self, args: tuple, kwargs: dict, abort=None, solver: str = "bundle_adjust"):
-        """``optimizer.<solver>(*args, abort=abort, **kwargs)`` solved in the child (``solver``:
-        bundle_adjust or bundle_adjust_sparse); in this thread if the child cannot run."""
-        import pickle
-        import select
-        import signal
-        with self._lock:
-            if not self.failed:
-                try:
-                    proc = self._ensure()
-                    if not self._ready:
-                        if proc.stdout.read(1) != b"R":
-                            raise RuntimeError("BA worker did not start")
-                        self._ready = True
-                    pickle.dump((solver, args, kwargs), proc.stdin,
-                                protocol=pickle.HIGHEST_PROTOCOL)
-                    proc.stdin.flush()
-                    aborted = False
-                    while not select.select([proc.stdout], [], [], 0.005)[0]:
-                        if not aborted and abort is not None and abort():
-                            proc.send_signal(signal.SIGUSR1)
-                            aborted = True
-                    res = pickle.load(proc.stdout)
-                    if isinstance(res, Exception):
-                        raise res
-                    return res
-                except Exception as exc:   # noqa: BLE001 - dead child, broken pipe, ...
-                    self._fail(exc)
-        return BA_SOLVERS[solver](*args, abort=abort, **kwargs)
-
-    def close(self) -> None:
-        with self._lock:
-            proc, self._proc = self._proc, None
-        if proc is not None:
-            try:
-                proc.stdin.close()
-                proc.wait(timeout=5.0)
-            except Exception:   # noqa: BLE001
-                proc.kill()
-                proc.wait()
-
-
 class Optimizer:
     """Static-style collection of the optimizations (ORB-SLAM2's Optimizer class)."""
 
@@ -556,12 +454,12 @@ class Optimizer:
     # ------------------------------------------------------------------ local bundle adjustment
     @staticmethod
     def local_bundle_adjustment(kf, map_, n_covisible: int = 10, iterations: int = 10,
-                                abort=None, worker: Optional["BAWorker"] = None,
+                                abort=None, worker=None,
                                 tol: float = 0.0) -> Tuple[List[int], int]:
         """ORB-SLAM2 LocalBundleAdjustment: optimise ``kf`` and its covisible keyframes and every
         point they see; keyframes that see those points but are not local stay fixed. Observations
         with chi2 above threshold after optimization are erased. Returns (moved kf ids, outliers).
-        With a ``worker`` (BAWorker) the solver runs in its child process. ``tol``: see
+        With a ``worker`` (ba_process.BAWorker) the solver runs in its child process. ``tol``: see
         :func:`bundle_adjust` (early end of a converged round).
         """
         with map_.lock:
@@ -698,10 +596,6 @@ def bundle_adjust_sparse(Ts: np.ndarray, fixed: np.ndarray, P: np.ndarray, cam_i
     return Ts, P, inlier
 
 
-# what a BAWorker child can solve (ba_worker.py looks the name up here too)
-BA_SOLVERS = {"bundle_adjust": bundle_adjust, "bundle_adjust_sparse": bundle_adjust_sparse}
-
-
 def global_bundle_adjustment(map_, iterations: int = 10, fixed_id: Optional[int] = None,
                              abort=None, lock_solve: bool = True,
                              min_observers: int = 2, min_kf_points: int = 0,
@@ -715,8 +609,9 @@ def global_bundle_adjustment(map_, iterations: int = 10, fixed_id: Optional[int]
     out of the solve and follow their ancestor like those added meanwhile: a pose over a handful
     of points is unconstrained (on office_loop seed 1 such a keyframe at the loop junction went
     3 km off and the solve took 36 s), and holding it instead lets its few points bend the loop.
-    ``worker`` (a :class:`BAWorker`) solves in a child process: its numpy/scipy steps,
-    some of which hold the GIL for tens of milliseconds, then never stall the tracking thread.
+    ``worker`` (a :class:`~mdr_slam.pose.ba_process.BAWorker`) solves in a child process: its
+    numpy/scipy steps, some of which hold the GIL for tens of milliseconds, then never stall the
+    tracking thread.
     Returns {"moved": kf ids, "outliers": n, "keyframes": n, "points": n, "followers": n}."""
     with map_.lock:
         kfs = sorted(map_.good_keyframes(), key=lambda k: k.id)

@@ -32,6 +32,7 @@ new origin: poses jump, and the keyframes of the old map are no longer listed.
 """
 from __future__ import annotations
 
+import bisect
 import contextlib
 import hashlib
 import os
@@ -41,6 +42,13 @@ import time
 from typing import Dict, List, Optional, Tuple
 
 import numpy as np
+
+from ..geometry import relative_motion
+from ..io import Trajectory, atomic_path, read_tum
+from .params import DEFAULT_PARAMS
+from .result import TrackResult
+from .tracking import LOST, NOT_INITIALIZED, OK
+from .vocabulary import default_vocabulary_path, load_vocabulary
 
 __all__ = ["ORBSLAM3System", "available", "import_error", "export_dbow2_text", "settings_yaml"]
 
@@ -69,7 +77,6 @@ def export_dbow2_text(voc, path: str) -> int:
     ORB-SLAM2/3 load ``ORBvoc.txt``: a ``k L scoring weighting`` line (L1 norm, tf-idf), then one
     line per node in breadth-first order, ``parent_id is_leaf d0 .. d31 weight`` (node ids count
     from 1 in file order, 0 is the root). Leaves carry the idf weight. Returns the node count."""
-    from ..io.atomic import atomic_path
     k, L = int(voc.k), int(voc.L)
     first = [0, 1]                     # first[l]: id of the first node of depth l (1-based)
     for lvl in range(1, L + 1):
@@ -96,7 +103,6 @@ def _vocabulary_file(params: dict) -> str:
         if not os.path.isfile(given):
             raise FileNotFoundError("orbslam3_vocabulary %s does not exist" % given)
         return given
-    from .vocabulary import default_vocabulary_path, load_vocabulary
     src = str(params.get("vocabulary") or "") or default_vocabulary_path()
     voc = load_vocabulary(src if os.path.isfile(src) else None)
     key = hashlib.sha1(b"".join(np.ascontiguousarray(c).tobytes() for c in voc.levels) +
@@ -172,7 +178,6 @@ def _stdout_silenced():
 
 def _read_keyframe_file(path: str):
     """(stamps (N,), T_wc (N, 4, 4)) of a TUM keyframe trajectory; empty when the file is."""
-    from ..io.trajectory import read_tum
     if not os.path.isfile(path) or os.path.getsize(path) == 0:
         return np.zeros(0), np.zeros((0, 4, 4))
     traj = read_tum(path)
@@ -194,7 +199,6 @@ class ORBSLAM3System:
     def __init__(self, camera, params: Optional[dict] = None, threads: bool = True,
                  T_map_cam0: Optional[np.ndarray] = None):
         import pyorbslam3
-        from .system import DEFAULT_PARAMS
         self.p = dict(DEFAULT_PARAMS)
         self.p.update(params or {})
         self.camera = camera
@@ -235,8 +239,6 @@ class ORBSLAM3System:
 
     def track(self, stamp: float, left_rect: Optional[np.ndarray] = None,
               right_rect: Optional[np.ndarray] = None, frame: Optional[_Pair] = None):
-        from .system import TrackResult
-        from .tracking import LOST, NOT_INITIALIZED, OK
         if frame is None:
             frame = self.make_frame(stamp, left_rect, right_rect)
         t0 = time.perf_counter()
@@ -280,8 +282,6 @@ class ORBSLAM3System:
         (reason, correction_id, {id: (stamp, T_map_kf)}) or None), as :class:`System` reports
         them. Keyframes are known by their stamps (the file has microseconds: the stamp of the
         frame fed within 2 us is used); ids count from 0 in order of appearance."""
-        import bisect
-        from ..geometry import relative_motion
         with _stdout_silenced():
             self.slam.save_keyframe_trajectory_tum(self._kf_file)
         big_change = bool(self.slam.map_changed())   # loop closure / global BA / map merge
@@ -326,7 +326,6 @@ class ORBSLAM3System:
         return dict(self._kf_poses)
 
     def trajectory(self, include_lost: bool = False):
-        from ..io import Trajectory
         rows = [(s, T) for s, T, _ in self._records if T is not None]
         if not rows:
             return Trajectory(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 4)))
