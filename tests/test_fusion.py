@@ -168,7 +168,7 @@ def _noisy_wall_laps(m, n_laps, seed=0, sigma=0.008, wrap=False):
 
 
 def test_repeated_noisy_laps_do_not_grow_the_map():
-    """#8: on a repeated room the map stops growing. Depth noise spreads a surface's samples over
+    """On a repeated room the map stops growing. Depth noise spreads a surface's samples over
     a few voxels along its normal; correlated clouds give the stray ones enough confidence, so
     without folding duplicates every lap adds a few permanent points (the old behaviour, kept as
     merge_duplicates=False, grows ~14 % from lap 4 to lap 12 here)."""
@@ -194,7 +194,7 @@ def test_repeated_noisy_laps_do_not_grow_the_map():
 
 
 def test_a_looping_bag_with_repeating_stamps_does_not_grow_the_map_either():
-    """#8: a looped bag replays its stamps every lap. The duplicate fold keeps the OLDER point of
+    """A looped bag replays its stamps every lap. The duplicate fold keeps the OLDER point of
     a surface; with the raw stamps a later lap's stray sample was no younger than the first lap's
     point at the same stamp and stayed (12 laps here: +4.8 % from lap 4; the live 30-minute
     looped runs kept growing). The map keeps its own monotonic time (stamp + an offset that grows
@@ -532,7 +532,7 @@ def test_from_config_reads_the_node_yaml(root_dir):
 
 
 def test_a_point_whose_mean_crosses_into_a_held_voxel_is_folded_into_its_holder():
-    """#8, one map point per surface cell: a running mean pulled across a voxel border (by a
+    """One map point per surface cell: a running mean pulled across a voxel border (by a
     neighbour voxel's sample, stage 2) is re-keyed to the voxel it is now in; when another point
     of the same surface holds that voxel, the two become one (without re-keying the mover keeps
     its old key and both stay: two points in one cell)."""
@@ -624,7 +624,7 @@ def _wall_laps_with_bursts(m, n_laps, seed=0, patch=False):
 
 
 def test_a_burst_of_noise_seen_through_by_later_clouds_is_not_confirmed():
-    """#8: a stray burst that one view produces in 3 consecutive clouds reaches min_confidence,
+    """A stray burst that one view produces in 3 consecutive clouds reaches min_confidence,
     so under the count rule alone every lap adds a few permanent points. In view of the 18
     clouds of a lap (the wall behind it is measured THROUGH it) it was seen in 3: below
     min_view_ratio, it is removed when its view window ends, and the map stops growing; the

@@ -170,7 +170,7 @@ def test_gradient_energy_measures_each_axis():
 
 
 def test_pose_optimization_weighs_each_axis_by_texture():
-    """#6 (seed 7 of office_loop_rotation): keypoints on horizontal edges have u and u_R that are
+    """Seed 7 of office_loop_rotation: keypoints on horizontal edges have u and u_R that are
     noise. With texture weights their x residuals count for little and the pose comes from the
     well-textured minority; weighted alike, they pull it off."""
     rng = np.random.RandomState(4)
@@ -698,7 +698,7 @@ def test_sparse_bundle_adjust_matches_dense():
     assert not inl[::47].any() and inl.mean() > 0.95
 
 
-# ---------------------------------------------------------------------- local mapping cost (#6, #7)
+# ---------------------------------------------------------------------- local mapping cost
 def _two_keyframes(room, sequence, a=0, b=5):
     """A map with two keyframes of the room at their true poses, no map points yet, connected in
     the covisibility graph: the input of CreateNewMapPoints."""
@@ -893,13 +893,14 @@ def test_triangulation_yields_to_a_waiting_keyframe_only_when_live(room, sequenc
 
 
 def test_loop_drift_gate_rejects_implausible_corrections():
-    """False loops in symmetric places (#6, garage seed 4: bays 11.7 m apart, turned 180 deg,
+    """False loops in symmetric places (garage seed 4: bays 11.7 m apart, turned 180 deg,
     passed the 3-D RANSAC) are refused when the correction exceeds the plausible drift; the
     displacement a correction's own rotation explains is allowed on top."""
     from mdr_slam.pose.loop_closing import LoopClosing
     mp, _ = _loop_map()
     lc = LoopClosing.__new__(LoopClosing)   # the gate only needs the map and the parameters
-    lc.map, lc.p, lc.rejected = mp, {}, []
+    from mdr_slam.pose.params import DEFAULT_PARAMS
+    lc.map, lc.p, lc.rejected = mp, dict(DEFAULT_PARAMS), []
     kf, cand = mp.keyframes[23], mp.keyframes[0]
     small = make_T(Rotation.from_euler("y", 12.0, degrees=True).as_matrix(), [0.3, 0.0, -0.2])
     assert lc.plausible_correction(kf, cand, small)          # ~9 m of keyframe path
@@ -949,7 +950,7 @@ def orbit_proximity_run(orbit_loop):
 
 
 def test_proximity_loop_closes_a_loop_the_bow_misses(orbit_loop, orbit_proximity_run):
-    """#6: old keyframes whose estimated pose is near the current one are verified by LK tracks
+    """Old keyframes whose estimated pose is near the current one are verified by LK tracks
     + PnP and closed although the BoW path accepts nothing; without the proximity path the same
     run closes no loop."""
     poses, images = orbit_loop
@@ -1001,7 +1002,7 @@ def test_proximity_refuses_a_false_candidate(orbit_proximity_run):
 
 
 def test_proximity_needs_both_sides_to_agree(orbit_proximity_run, monkeypatch):
-    """#6: when the candidate's own keypoints tracked into kf give a pose too, it must agree
+    """When the candidate's own keypoints tracked into kf give a pose too, it must agree
     with kf's (``loop_proximity_two_way_deg`` / ``_m``); a verification from one side whose
     other side disagrees by 5 deg is refused and recorded; no pose from cand's side leaves the
     verification to kf's side alone."""
@@ -1045,12 +1046,13 @@ def test_proximity_needs_both_sides_to_agree(orbit_proximity_run, monkeypatch):
 
 
 def test_weak_proximity_verifications_need_consistent_corrections():
-    """#6: a proximity verification with few inliers (blank wall) counts only when the loop
+    """A proximity verification with few inliers (blank wall) counts only when the loop
     corrections of the previous keyframes' weak verifications agree with it."""
     from types import SimpleNamespace
     from mdr_slam.pose.loop_closing import LoopClosing
     lc = LoopClosing.__new__(LoopClosing)
-    lc.p, lc._weak = {"loop_proximity_weak_consistency": 2}, []
+    from mdr_slam.pose.params import DEFAULT_PARAMS
+    lc.p, lc._weak = dict(DEFAULT_PARAMS, loop_proximity_weak_consistency=2), []
     S = make_T(Rotation.from_euler("y", 20.0, degrees=True).as_matrix(), [0.8, 0.0, -0.3])
     kfs = [SimpleNamespace(id=i, T_wc=make_T(np.eye(3), [0.1 * i, 0.0, 0.0])) for i in range(6)]
     assert not lc._weak_consistent(kfs[0], S)
@@ -1067,7 +1069,7 @@ def test_weak_proximity_verifications_need_consistent_corrections():
 
 
 def test_trajectory_spreads_the_next_keyframes_correction_over_the_frames_before_it(sequence):
-    """#6: System.trajectory puts a frame between keyframes a and b on both: when BA (or a loop)
+    """System.trajectory puts a frame between keyframes a and b on both: when BA (or a loop)
     moves b, the frames tracked since a follow it in proportion to their time since a, not only
     a (ORB-SLAM2 keeps them on their reference keyframe, and frame-to-frame drift between two
     keyframes stays in the trajectory: the simulated garage's blank walls)."""
@@ -1237,7 +1239,7 @@ def test_flow_pnp_fits_the_tracks_that_pin_both_axes(monkeypatch):
 
 def _edge_and_spread_points(rng, n=50):
     """A vertical door edge (y spread 0.3 m, x/z within ~1 cm) and points spread over two walls,
-    both about 1.5 m in front of the origin (#6: the sample's revisit matched only such an edge)."""
+    both about 1.5 m in front of the origin (the sample's revisit matched only such an edge)."""
     edge = np.column_stack([rng.randn(n) * 0.03, rng.uniform(-0.5, 0.5, n), 1.5 + rng.randn(n) * 0.01])
     spread = np.column_stack([rng.uniform(-0.8, 0.8, n), rng.uniform(-0.5, 0.5, n),
                               np.where(rng.rand(n) < 0.5, 1.5, 2.3)])
@@ -1246,7 +1248,7 @@ def _edge_and_spread_points(rng, n=50):
 
 def test_loop_rotation_sigma_predicts_the_fit_error_and_gates_edge_loops():
     """A loop whose 3-D inliers lie along one edge leaves the turn about that edge to the noise
-    (#6 sample with the motion prior: 53 correct matches on one edge, loop 8.3 deg off): the
+    (the sample with the motion prior: 53 correct matches on one edge, loop 8.3 deg off): the
     predicted rotation sigma matches the spread of real fits, and such a loop is refused unless
     its turn is several sigmas (a large drift it still reduces), while a spread set is kept."""
     from mdr_slam.pose.loop_closing import _umeyama_batch, loop_rotation_check, rotation_sigma_deg
@@ -1324,7 +1326,7 @@ def test_motion_prior_holds_the_pose_on_a_single_small_patch():
 
 
 def test_loop_correction_of_far_points_is_refined_by_their_pixels():
-    """A loop seen on one far patch (#6, simulated garage seed 11): the 3-D fit of the current
+    """A loop seen on one far patch (simulated garage seed 11): the 3-D fit of the current
     side's stereo points to the loop side's map points inherits their depth noise (3 % at
     5.5 m) and turns the map by degrees; re-estimating the keyframe's corrected pose from its
     pixels against the loop-side points (LoopClosing.refine_by_reprojection, as ORB-SLAM2's

@@ -58,7 +58,7 @@ Fuse-update-clean (paper 3.4.2)
   the count without independent evidence; so does a surface that only one moment measures,
   which is the price (sample room, 20 replayed laps, 1 s: RMSE 17.2 -> 14.1 mm, completeness
   19.3 -> 17.8 %).
-* in view (``min_view_ratio`` > 0, #8): the count alone confirms any sample that a few correlated
+* in view (``min_view_ratio`` > 0): the count alone confirms any sample that a few correlated
   clouds produce, so a repeated room keeps adding stray points lap after lap (the count grows with
   time, not with the evidence). Every point therefore also counts the clouds that had it IN VIEW
   during its first ``view_window`` seconds (:meth:`_count_views`: a cloud whose nearest measured
