@@ -320,3 +320,23 @@ def test_package_xml_declares_rosdep_keys_for_every_import():
         for os_name in ("debian", "ubuntu"):
             pip = rule[os_name]["pip"]["packages"]
             assert pip and all(p.lower() in requirements for p in pip), (key, os_name, pip)
+
+
+def test_env_loader_activates_the_venv_of_an_install_space(tmp_path):
+    """A node started on another machine from an install space: catkin's setup.bash there does
+    not know the venv of the pip dependencies, MDR_VENV names it."""
+    scripts = tmp_path / "share" / "mdr_slam" / "scripts"
+    scripts.mkdir(parents=True)
+    loader = scripts / "env_loader.sh"
+    loader.write_text(open(os.path.join(ROOT, "src", "mdr_slam", "scripts", "env_loader.sh")).read())
+    (tmp_path / "setup.bash").write_text("# catkin's install-space setup.bash stands here\n")
+    venv = sys.prefix   # the test's own venv
+    cmd = ["bash", str(loader), "python3", "-c", "import sys; print(sys.prefix)"]
+    bare = {"PATH": "/usr/bin:/bin", "HOME": str(tmp_path)}
+    r = subprocess.run(cmd, env=dict(bare, MDR_VENV=venv), capture_output=True, text=True)
+    assert r.returncode == 0 and r.stdout.strip() == venv, r.stderr
+    r = subprocess.run(cmd, env=bare, capture_output=True, text=True)
+    assert r.returncode == 0 and r.stdout.strip() != venv
+    r = subprocess.run(cmd, env=dict(bare, MDR_VENV=str(tmp_path / "none")), capture_output=True,
+                       text=True)
+    assert r.returncode == 1 and "MDR_VENV" in r.stderr

@@ -8,6 +8,8 @@
 #
 # Per-machine settings (ROS_IP or ROS_HOSTNAME of that computer, so the others can reach its
 # nodes): put `export ROS_IP=192.168.1.12` in WORKSPACE/machine.bash; it is sourced when present.
+# From an install space (catkin_make install), whose setup.bash is catkin's own, MDR_VENV names
+# the Python virtual environment that holds the pip dependencies (activated after setup.bash).
 if [ $# -eq 0 ]; then
     echo "usage: env_loader.sh COMMAND [ARGS...]  (sources the MDR-SLAM workspace, then runs COMMAND)" >&2
     exit 1
@@ -28,6 +30,14 @@ if [ -z "$ws" ] || [ ! -f "$ws/setup.bash" ]; then
 fi
 # shellcheck disable=SC1091
 source "$ws/setup.bash"
+if [ -n "${MDR_VENV:-}" ]; then
+    if [ ! -f "$MDR_VENV/bin/activate" ]; then
+        echo "env_loader.sh: MDR_VENV=$MDR_VENV has no bin/activate" >&2
+        exit 1
+    fi
+    # shellcheck disable=SC1091
+    source "$MDR_VENV/bin/activate"
+fi
 if [ -f "$ws/machine.bash" ]; then
     # shellcheck disable=SC1091
     source "$ws/machine.bash"
