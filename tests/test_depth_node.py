@@ -53,7 +53,8 @@ def _node_cmd(name, prefix, *extra):
     return ["rosrun", "mdr_slam", "depth_node", "__name:=" + name,
             "left/image:=%sleft/image" % prefix, "right/image:=%sright/image" % prefix,
             "left/camera_info:=%sleft/info" % prefix, "right/camera_info:=%sright/info" % prefix,
-            "_tau:=0.05", "_stride:=1", "_elas/disp_max:=64"] + list(extra)
+            "_tau:=0.05", "_stride:=1", "_elas/disp_max:=64",
+            "_max_rate:=0"] + list(extra)   # every pair (a test asks for max_rate itself)
 
 
 def _fields(msg):
