@@ -115,6 +115,10 @@ def _overrides(items):
         node, dot, k = key.partition(".")
         if not sep or not dot or node not in out:
             raise SystemExit("--set wants NODE.KEY=VALUE with NODE in pose, depth, fusion: %r" % it)
+        from ..nodes import node_defaults
+        if k.split(".")[0] not in node_defaults(node):
+            raise SystemExit("--set: the %s node has no parameter %r (see config/%s.yaml)"
+                             % (node, k, node))
         out[node][k] = yaml.safe_load(val)
     return out
 

@@ -12,6 +12,23 @@ def get_params(defaults: dict, ns: str = "~") -> dict:
     return {k: rospy.get_param(ns + k, v) for k, v in defaults.items()}
 
 
+def unknown_params(known, node: str) -> list:
+    """Private parameters of this node that no default names (a typo in a YAML file or on the
+    command line would otherwise be ignored in silence): logged as an error, and returned.
+    A key whose default is a dict (``elas``) covers its sub-keys."""
+    import rospy
+    base = rospy.get_name()
+    have = set()
+    for name in rospy.get_param_names():
+        if name.startswith(base + "/"):
+            have.add(name[len(base) + 1:].split("/", 1)[0])
+    bad = sorted(have - set(known))
+    if bad:
+        rospy.logerr("%s: unknown parameters %s are not read (typo? see config/%s.yaml)", node,
+                     ", ".join("~" + k for k in bad), node.replace("_node", ""))
+    return bad
+
+
 class Throttled:
     """rospy log calls limited to one per ``period`` seconds per key (logwarn_throttle keys on the
     call site only; here the key is the message kind, so distinct problems are all reported)."""

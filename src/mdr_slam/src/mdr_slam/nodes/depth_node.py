@@ -51,7 +51,7 @@ from typing import Optional
 import numpy as np
 
 from .common import (ClockWatch, StampGuard, StampRateLimiter, Throttled, get_params,
-                     skip_future_stamp, transform_listener)
+                     skip_future_stamp, transform_listener, unknown_params)
 from .health import update_diagnostics
 from .stereo_input import StereoInput, to_mono8
 
@@ -502,6 +502,7 @@ def main():
     defaults = dict(DEFAULTS)
     defaults.update(DEPTH_DEFAULTS)
     p = get_params(defaults)
+    unknown_params(defaults, "depth_node")
     try:
         DepthNode(p)
     except Exception as e:  # bad parameters: say which, and stay up so the launch keeps running

@@ -37,7 +37,7 @@ import time
 import numpy as np
 
 from .common import (ClockWatch, StampGuard, Throttled, get_params, skip_future_stamp,
-                     transform_listener)
+                     transform_listener, unknown_params)
 from .health import ProcessHealth, update_diagnostics
 
 DEFAULTS = {
@@ -581,6 +581,7 @@ def main():
     from .memdebug import start_from_env
     start_from_env("fusion_node")   # MDR_MEMDEBUG=FILE (%n: node name): memory stats, memdebug.py
     p = get_params(DEFAULTS)
+    unknown_params(DEFAULTS, "fusion_node")
     if p["omp_threads"] > 0:
         limit_openmp_threads(p["omp_threads"])
     node = FusionNode(p)

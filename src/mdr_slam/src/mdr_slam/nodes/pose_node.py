@@ -12,7 +12,7 @@ import numpy as np
 
 from .stereo_input import StereoInput, to_mono8
 from .common import (ClockWatch, StampGuard, Throttled, frame_root, get_params,
-                     parse_transform, skip_future_stamp, transform_listener)
+                     parse_transform, skip_future_stamp, transform_listener, unknown_params)
 
 DEFAULTS = {
     "source": "orb",
@@ -751,6 +751,8 @@ def main():
     from ..conversions import ConversionError, pose_stamped_to_matrix
     rospy.init_node("pose_node")
     p = get_params(DEFAULTS)
+    from ..pose.params import DEFAULT_PARAMS
+    unknown_params(set(DEFAULTS) | set(DEFAULT_PARAMS), "pose_node")
     if int(p["blas_threads"]) > 0:
         # one BLAS thread: OpenBLAS's second thread mostly spins on the small BA/PnP products
         # and takes CPU from the depth and fusion nodes on a 2-core machine
