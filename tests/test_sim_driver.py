@@ -384,3 +384,14 @@ def test_mdr_sim_driver_cli(tmp_path):
                           str(tmp_path / "y"), "--driver", "zed", "--distort"],
                          capture_output=True, text=True)
     assert bad.returncode == 2 and "rectified" in bad.stderr
+
+
+def test_bench_counts_the_pairs_on_the_topics_it_is_given(runs):
+    """``mdr bench`` reports the bag's stereo pairs on the driver's topics, compressed too."""
+    from types import SimpleNamespace
+    from mdr_slam.cli.bench_live import _stereo_pairs
+    info = runs["zed_jpeg"]["driver"]
+    args = SimpleNamespace(left_image=info["topics"]["left_image"],
+                           right_image=info["topics"]["right_image"], image_transport="compressed")
+    assert _stereo_pairs(runs["zed_jpeg"]["bag"], args) == 20
+    assert _stereo_pairs(runs["zed_jpeg"]["bag"]) == 0     # nothing on the default topics

@@ -34,11 +34,16 @@ def _bag_duration(path: str) -> float:
         return float(b.get_end_time() - b.get_start_time())
 
 
-def _stereo_pairs(path: str) -> int:
+def _stereo_pairs(path: str, args=None) -> int:
+    """Left images in the bag on the topic the nodes read (the options of ``mdr bench``)."""
     import rosbag
+    from ..bagio import image_topics
+    topics = {k: getattr(args, k) for k in ("left_image", "right_image")
+              if getattr(args, k, None)}
+    left = image_topics(topics, getattr(args, "image_transport", None) or "raw")["left"]
     with rosbag.Bag(path) as b:
         info = b.get_type_and_topic_info().topics
-    return int(info["/stereo/left/image_raw"].message_count) if "/stereo/left/image_raw" in info else 0
+    return int(info[left].message_count) if left in info else 0
 
 
 def _node_processes(launch_pid: int) -> Dict[str, "object"]:
@@ -410,7 +415,7 @@ def _summarize(args, bag, lst: "_Listener", samples, elapsed, pose_source) -> di
             return None
     integrated = fdiag("fusion", "clouds integrated")
     received = fdiag("depth", "received")
-    pairs = _stereo_pairs(bag)
+    pairs = _stereo_pairs(bag, args)
     r = OrderedDict()
     r["bag"] = bag
     r["pose_source"] = pose_source
