@@ -4,7 +4,7 @@
     python scripts/eval_pose_sim.py [--out output/eval_pose_sim] [--sequences office_loop,office_loop@5,...]
                                     [--scale 1.0] [--rate 20] [--json FILE] [--no-compare]
                                     [--jobs 2] [--set KEY=VALUE] [--oracle-loops]
-    python scripts/eval_pose_sim.py --sequences all --jobs 2    # the README's 13 sequences (7 min on 2 cores)
+    python scripts/eval_pose_sim.py --sequences all --jobs 2    # docs/benchmarks.md's 13 sequences (7 min on 2 cores)
 
 Every sequence is rendered once by ``mdr_slam.sim.generate`` (752x480 at 20 Hz by default; an
 existing ``DIR/<name>/sequence.bag`` rendered with the same settings is reused) and tracked
@@ -46,7 +46,7 @@ SEQUENCES = {
 }
 DEFAULT = "office_loop,office_loop_rotation,office_pure_rotation,corridor_corner,garage_loop"
 # other noise seeds of the same sequences: with the defaults, the 12 sequences (and the pure
-# rotation) of the README's accuracy table; chaotic figures need all of them to judge a change
+# rotation) of the accuracy table in docs/benchmarks.md; chaotic figures need all of them to judge a change
 SEEDS = ("office_loop@5,office_loop@6,office_loop@9,office_loop_rotation@7,office_loop_rotation@8,"
          "office_loop_rotation@10,corridor_corner@12,garage_loop@11")
 ALIASES = {"default": DEFAULT, "seeds": SEEDS, "all": DEFAULT + "," + SEEDS}
@@ -342,7 +342,7 @@ def main(argv=None) -> int:
     ap.add_argument("--sequences", default=DEFAULT,
                     help="comma-separated, of: %s; NAME@SEED renders NAME with another noise "
                     "seed (several seeds give the spread of a chaotic figure); 'seeds' the 8 "
-                    "other seeds of the README's table, 'all' the defaults and those"
+                    "other seeds of the benchmarks table, 'all' the defaults and those"
                     % ", ".join(SEQUENCES))
     ap.add_argument("--jobs", type=int, default=1,
                     help="sequences evaluated at once, one process each (2 on a 2-core machine "

@@ -12,12 +12,12 @@ textureThreshold; sensor noise alone gives about 1.13 sigma = 2.3). Per bin: key
 share whose depth is off by more than 10 %, the median relative error. Also, per frame, the
 share of stereo keypoints below 3 grey levels (blank walls, the specular band's highlight).
 
-It measures the cause of the drift on office_loop_rotation seed 7 (README, Known limitations):
+It measures the cause of the drift on office_loop_rotation seed 7 (docs/experiments.md):
 on the band the corners are noise and so are their disparities. The tracker uses a related
 measure (the mean squared x and y gradient of the 7x7 patch, ``pose.frame.gradient_energy``) to
 weight each keypoint's x and y residuals (``texture_tau``) and to pick the optical-flow tracks
 its PnP fits (``flow_pnp_min_texture``); the variants that dropped such stereo depths, tried and
-not kept, are in the README.
+not kept, are in docs/experiments.md.
 """
 from __future__ import annotations
 

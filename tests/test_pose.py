@@ -1513,7 +1513,7 @@ def test_check_stereo_offset_script_reads_kittis_offset(root_dir):
 
 
 def test_stereo_texture_errors_script_finds_the_noise_disparities(root_dir, tmp_path):
-    """scripts/stereo_texture_errors.py (README, Known limitations: the cause of seed 7's
+    """scripts/stereo_texture_errors.py (docs/experiments.md: the cause of seed 7's
     drift): stereo keypoints on patches at the noise level (mean |dI/dx| < 2.5 grey levels) mostly
     have wrong depths, textured ones (>= 5) almost never."""
     import json
@@ -1580,7 +1580,7 @@ def test_eval_pose_sim_scores_loops_and_replaces_them_by_the_truth(root_dir, mon
 
 def test_eval_pose_sim_aliases_and_summary(root_dir):
     """scripts/eval_pose_sim.py --sequences all: the defaults and the 8 other seeds of the
-    README's table, each once; the summary gives mean / max ATE % and the loop ratios."""
+    table of docs/benchmarks.md, each once; the summary gives mean / max ATE % and the loop ratios."""
     import importlib.util
     import os
     spec = importlib.util.spec_from_file_location(

@@ -293,7 +293,7 @@ def load_kitti_calibration(path: str, size: Tuple[int, int],
     ``-(P1[0,3] - P0[0,3]) / fx`` (0.5372 m for the grey pair). ``doffs`` overrides the principal
     point difference (the right cx becomes ``P0 cx - doffs``; calib.txt gives both the same cx,
     but on sequence 06 the disparities measure -0.16 to -0.21 px against the ground truth:
-    scripts/check_stereo_offset.py, README "Stereo calibration check").
+    scripts/check_stereo_offset.py, docs/benchmarks.md "Stereo calibration check").
     """
     if not os.path.isfile(path):
         raise CalibrationError("KITTI calibration %s does not exist" % path)

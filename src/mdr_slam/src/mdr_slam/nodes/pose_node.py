@@ -49,7 +49,7 @@ BASE_TF_WAIT_GIVEN = 0.2  # ... and when ~base_to_camera gives one (then tf is o
 MAP_ODOM_RATE = 20.0      # Hz: map -> odom re-sent (future-dated one period) with wheel odometry,
                           # so tf stays valid while tracking is LOST or the camera stalls
 ODOM_LOOKUP_TIMEOUT = 0.05  # s to wait for the robot's odom -> base_link at an image stamp
-# /mdr/odom covariance (documented in the README): the tracker's pose is good to about a
+# /mdr/odom covariance (documented in the README's topic table): the tracker's pose is good to about a
 # centimetre and half a degree on the project's sequences (ATE 0.2-1 % of the path); twist from
 # consecutive poses, whose difference doubles the variance over one frame period
 POSE_STD_M = 0.02
