@@ -182,12 +182,6 @@ def _deserialize(pytype, data):
     return msg
 
 
-def _to_mono8(msg) -> np.ndarray:
-    if msg._type == "sensor_msgs/CompressedImage":
-        return cv.compressed_image_to_mono8(msg)
-    return cv.image_to_mono8(msg)
-
-
 class _Infos:
     """The camera_infos of one side by stamp; identical calibrations are kept once (a driver
     publishes the same one with every image)."""
@@ -345,7 +339,7 @@ def read_stereo_frames(bag_path: str, topics: Optional[Dict[str, str]] = None,
                 continue
             _, data, _, _, pytype = raw
             try:
-                img = _to_mono8(_deserialize(pytype, data))
+                img = cv.image_msg_to_mono8(_deserialize(pytype, data))
             except cv.ConversionError as e:
                 skip("%s image at %s on %s: %s" % (side, _fmt(ns), topic, e))
                 img = None

@@ -33,7 +33,7 @@ from .camera import CameraModel
 from .geometry import make_T, quat_to_R, R_to_quat
 
 __all__ = [
-    "ConversionError", "image_to_numpy", "image_to_mono8", "numpy_to_image",
+    "ConversionError", "image_to_numpy", "image_to_mono8", "image_msg_to_mono8", "numpy_to_image",
     "compressed_image_to_mono8", "numpy_to_compressed_image", "camera_info_to_model",
     "model_to_camera_info", "pointcloud2_to_arrays", "pointcloud2_to_xyz", "arrays_to_pointcloud2",
     "pose_to_matrix", "matrix_to_pose", "pose_stamped_to_matrix", "matrix_to_pose_stamped",
@@ -228,6 +228,13 @@ def compressed_image_to_mono8(msg: CompressedImage) -> np.ndarray:
     if img.dtype == np.uint16:
         img = (img >> 8).astype(np.uint8)
     return img
+
+
+def image_msg_to_mono8(msg) -> np.ndarray:
+    """Grey uint8 image of a sensor_msgs/Image or a sensor_msgs/CompressedImage."""
+    if getattr(msg, "_type", "") == "sensor_msgs/CompressedImage":
+        return compressed_image_to_mono8(msg)
+    return image_to_mono8(msg)
 
 
 def numpy_to_compressed_image(arr: np.ndarray, fmt: str = "jpeg", stamp=None, frame_id: str = "",

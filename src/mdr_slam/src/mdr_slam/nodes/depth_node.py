@@ -53,7 +53,8 @@ import numpy as np
 from .common import (ClockWatch, StampGuard, StampRateLimiter, Throttled, get_params,
                      skip_future_stamp, transform_listener, unknown_params)
 from .health import update_diagnostics
-from .stereo_input import StereoInput, to_mono8
+from ..conversions import image_msg_to_mono8 as to_mono8
+from .stereo_input import StereoInput
 
 DEFAULTS = {
     "map_frame": "map",

@@ -10,7 +10,8 @@ import threading
 
 import numpy as np
 
-from .stereo_input import StereoInput, to_mono8
+from ..conversions import image_msg_to_mono8 as to_mono8
+from .stereo_input import StereoInput
 from .common import (ClockWatch, StampGuard, Throttled, frame_root, get_params,
                      parse_transform, skip_future_stamp, transform_listener, unknown_params)
 
@@ -49,7 +50,7 @@ BASE_TF_WAIT_GIVEN = 0.2  # ... and when ~base_to_camera gives one (then tf is o
 MAP_ODOM_RATE = 20.0      # Hz: map -> odom re-sent (future-dated one period) with wheel odometry,
                           # so tf stays valid while tracking is LOST or the camera stalls
 ODOM_LOOKUP_TIMEOUT = 0.05  # s to wait for the robot's odom -> base_link at an image stamp
-# /mdr/odom covariance (documented in the README's topic table): the tracker's pose is good to about a
+# /mdr/odom covariance (the README's topic table): the tracker's pose is good to about a
 # centimetre and half a degree on the project's sequences (ATE 0.2-1 % of the path); twist from
 # consecutive poses, whose difference doubles the variance over one frame period
 POSE_STD_M = 0.02
@@ -103,7 +104,8 @@ class PoseRelay:
         self.warn = Throttled()
         mode = str(p.get("publish_odom_tf", "auto")).lower()
         if mode not in ("auto", "true", "false"):
-            raise ValueError("publish_odom_tf must be auto, true or false, got %r" % mode)
+            rospy.logerr("pose_node: ~publish_odom_tf is auto, true or false, not %r: auto", mode)
+            mode = "auto"
         self.odom_mode = mode
         self.wheel_odom = False            # the robot's odometry owns odom -> base_link
         self._last_odom_pose = None        # (stamp s, T_map_base) for the twist

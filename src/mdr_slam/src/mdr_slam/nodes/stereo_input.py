@@ -22,14 +22,6 @@ from ..stereo_sync import StereoSync
 TRANSPORTS = ("raw", "compressed")
 
 
-def to_mono8(msg):
-    """Grey uint8 image of a sensor_msgs/Image or CompressedImage (raises ConversionError)."""
-    from ..conversions import compressed_image_to_mono8, image_to_mono8
-    if getattr(msg, "_type", "") == "sensor_msgs/CompressedImage":
-        return compressed_image_to_mono8(msg)
-    return image_to_mono8(msg)
-
-
 class StereoInput:
     """Subscribes to a stereo pair and calls ``callback(left, right, left_info, right_info)`` for
     each pair (infos None when ``with_info`` is False: a calibration file is used instead)."""
