@@ -38,6 +38,52 @@ def test_shipped_yaml_agrees_with_the_code_defaults(node):
     assert not differ, "%s.yaml (shipped, code): %s" % (node, differ)
 
 
+def test_pose_yaml_lists_only_the_keys_a_user_tunes():
+    """config/pose.yaml is the short list; the rest live, commented, in the code's defaults."""
+    shipped = yaml.safe_load(open(os.path.join(CONFIG, "pose.yaml")))
+    assert len(shipped) <= 25, sorted(shipped)
+    for key in ("source", "backend", "n_features", "calib", "trajectory_path"):
+        assert key in shipped, key
+
+
+def _comment_blocks(path):
+    """(first line number, length) of each comment: a run of comment-only lines, counting the
+    line before it when that line ends in a comment the run continues."""
+    blocks, start, n = [], None, 0
+    prev_inline = False
+    for i, line in enumerate(open(path).read().splitlines(), 1):
+        if line.strip().startswith("#"):
+            if start is None:
+                start, n = (i - 1, 1) if prev_inline else (i, 0)
+            n += 1
+        else:
+            if start is not None:
+                blocks.append((start, n))
+            start = None
+        prev_inline = not line.strip().startswith("#") and " #" in line
+    if start is not None:
+        blocks.append((start, n))
+    return blocks
+
+
+@pytest.mark.parametrize("node", ["pose", "depth", "fusion"])
+def test_yaml_comments_are_short(node):
+    """Measurements behind a default belong in docs/experiments.md, not in the parameter file."""
+    path = os.path.join(CONFIG, node + ".yaml")
+    long = [(line, n) for line, n in _comment_blocks(path) if n > 4]
+    assert not long, "%s.yaml comment blocks (first line, lines) longer than 4: %s" % (node, long)
+
+
+def test_comment_block_counter():
+    import tempfile
+    with tempfile.NamedTemporaryFile("w", suffix=".yaml", delete=False) as f:
+        f.write("# a\n# b\nx: 1   # c\n     # d\n     # e\ny: 2\n\n# f\n")
+    try:
+        assert _comment_blocks(f.name) == [(1, 2), (3, 3), (8, 1)]
+    finally:
+        os.unlink(f.name)
+
+
 @pytest.mark.parametrize("preset", ["sample", "euroc", "kitti"])
 def test_preset_files_override_known_keys_only(preset):
     for node in ("pose", "depth", "fusion"):

@@ -16,32 +16,34 @@ from .common import (ClockWatch, StampGuard, Throttled, frame_root, get_params,
                      parse_transform, skip_future_stamp, transform_listener, unknown_params)
 
 DEFAULTS = {
-    "source": "orb",
-    "map_frame": "map",
+    "source": "orb",               # orb (stereo tracking) or groundtruth (relay a ground-truth pose)
+    "map_frame": "map",            # tf frames (REP-105)
     "odom_frame": "odom",
     "base_frame": "base_link",
     "camera_frame": "",            # empty: the left image's frame_id (groundtruth: DEFAULT_CAMERA_FRAME)
     "base_to_camera": "",          # T_base_camera "x y z qx qy qz qw", published only when tf has none
-    "publish_tf": True,
+    "publish_tf": True,            # map -> odom -> base_link (false: topics only)
     "publish_odom_tf": "auto",     # auto: odom -> base_link unless the robot's odometry publishes it
-    "path_max_length": 100000,
+    "path_max_length": 100000,     # /mdr/path keeps at most this many poses (the oldest go)
     "path_period": 0.5,            # /mdr/path at most this often (s): its size grows with the run
     "path_min_translation": 0.05,  # a pose joins /mdr/path once the camera moved this far (m) ...
     "path_min_rotation_deg": 5.0,  # ... or turned this much since the last one (0 and 0: every pose)
-    "blas_threads": 1,             # BLAS threads of this process (0: library default)
-    "cv_threads": 1,               # OpenCV threads of this process (0: library default)
+    "blas_threads": 1,             # BLAS threads of this process (0: library default; OpenBLAS's 2nd spins)
+    "cv_threads": 1,               # OpenCV threads (0: library default; left/right ORB already run in parallel)
     "calib": "",                   # calibration file(s) instead of camera_info
     "image_transport": "raw",      # raw (sensor_msgs/Image) or compressed (<image topic>/compressed)
     "rectified": "auto",           # auto: image_rect* topics and distortion-free camera_info are rectified
-    "sync_queue_size": 10,
+    "sync_queue_size": 10,         # message_filters queue of the stereo synchronizer
     "sync_tolerance": 0.0,         # s between the stamps of a stereo pair; 0 = 0.4 of the frame period
     "max_pending": 2,              # stereo pairs waiting for the tracker; older ones are dropped
     "pipeline_frames": True,       # make frame N+1 (ORB, stereo) while frame N is being tracked
-    "threads": True,
-    "trajectory_path": "",
-    "trajectory_format": "",
-    "diagnostics_period": 1.0,
+                                   # (max_pending waiting in each thread)
+    "threads": True,               # LocalMapping/LoopClosing in background threads
+    "trajectory_path": "",         # written on shutdown when set (.txt = TUM, .kitti = KITTI)
+    "trajectory_format": "",       # tum or kitti; empty = from the extension (default tum)
+    "diagnostics_period": 1.0,     # s between /diagnostics messages
     "max_future_stamp": 1.0,       # s (sim time): pairs and poses stamped further ahead of the clock are dropped
+                                   # (a looping bag's clock jumps back; 0 = no check)
 }
 
 DEFAULT_CAMERA_FRAME = "camera_left_optical_frame"   # the simulator's; when nothing names one
