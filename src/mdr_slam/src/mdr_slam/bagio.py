@@ -17,9 +17,12 @@ from typing import Dict, Iterator, List, Optional
 
 import numpy as np
 
+import genpy
+from tf2_msgs.msg import TFMessage
+
 from . import conversions as cv
 from .camera import CameraModel, StereoCamera
-from .geometry import interpolate_pose, inv_T
+from .geometry import interpolate_pose
 from .stereo_sync import StereoSync
 
 DEFAULT_TOPICS = {
@@ -42,6 +45,8 @@ class StereoBagWriter:
     """Writes a stereo sequence on the default input topics (mono8 images + camera_info)."""
 
     def __init__(self, path: str, topics: Optional[Dict[str, str]] = None, compression: str = "none"):
+        # rosbag (it imports rospy: 0.1-0.25 s) only where a bag is opened: `mdr --help`
+        # imports this module for DEFAULT_TOPICS and IMAGE_TRANSPORTS
         import rosbag
         self.topics = dict(DEFAULT_TOPICS, **(topics or {}))
         self.bag = rosbag.Bag(path, "w", compression=compression)
@@ -50,7 +55,6 @@ class StereoBagWriter:
     def write_stereo(self, stamp: float, left: np.ndarray, right: np.ndarray,
                      camera: Optional[StereoCamera] = None, encoding: Optional[str] = None) -> None:
         """One stereo pair (and, when given, the pair's camera_info) at ``stamp`` seconds."""
-        import genpy
         t = genpy.Time.from_sec(stamp)
         for side, img, frame in (("left", left, LEFT_FRAME), ("right", right, RIGHT_FRAME)):
             if camera is not None:  # camera_info first, so a reader has it with the image
@@ -65,8 +69,6 @@ class StereoBagWriter:
 
     def write_ground_truth(self, stamp: float, T_map_cam: np.ndarray, tf: bool = True) -> None:
         """Ground-truth pose of the left camera optical frame in ``map`` (PoseStamped + tf)."""
-        import genpy
-        from tf2_msgs.msg import TFMessage
         t = genpy.Time.from_sec(stamp)
         self.bag.write(self.topics["ground_truth"], cv.matrix_to_pose_stamped(T_map_cam, t, "map"), t)
         if tf:
@@ -173,7 +175,6 @@ def _fmt(ns: int) -> str:
 
 def _deserialize(pytype, data):
     """The message of serialized ``data``; ConversionError when it is cut short or corrupt."""
-    import genpy
     msg = pytype()
     try:
         msg.deserialize(data)

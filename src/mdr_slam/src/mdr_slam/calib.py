@@ -17,11 +17,14 @@ exactly what ROS's camera_info carries for a stereo pair, R1/R2 as ``R`` and P1/
 """
 from __future__ import annotations
 
+import glob
 import os
 import re
 from typing import Dict, List, Optional, Sequence, Tuple, Union
 
+import cv2
 import numpy as np
+import yaml
 
 from .camera import CalibrationError, CameraModel, StereoCamera
 from .geometry import inv_T
@@ -38,7 +41,6 @@ PathLike = Union[str, Sequence[str]]
 # --------------------------------------------------------------------------------------- helpers
 def _read_yaml(path: str) -> dict:
     """YAML text of ``path``; OpenCV's ``%YAML:1.0`` header (EuRoC) is not valid for PyYAML."""
-    import yaml
     if not os.path.isfile(path):
         raise CalibrationError("calibration file %s does not exist" % path)
     with open(path) as f:
@@ -132,7 +134,6 @@ def rectify_stereo(K0: np.ndarray, D0: np.ndarray, K1: np.ndarray, D1: np.ndarra
     crops to valid pixels only (no black border reaching the stereo matcher);
     ``CALIB_ZERO_DISPARITY`` makes the principal points equal so depth is ``fx*B/d``.
     """
-    import cv2
     R = np.ascontiguousarray(T_cam1_cam0[:3, :3])
     t = np.ascontiguousarray(T_cam1_cam0[:3, 3].reshape(3, 1))
     w, h = int(size[0]), int(size[1])
@@ -370,8 +371,6 @@ def load_stereo_calibration(path_or_paths: PathLike,
 
 
 def _kitti_image_size(folder: str) -> Tuple[int, int]:
-    import glob
-    import cv2
     for sub in ("image_0", "image_l"):
         files = sorted(glob.glob(os.path.join(folder, sub, "*.png")))
         if files:

@@ -14,9 +14,11 @@ name, and :meth:`StereoCamera.assume_rectified` makes the camera that does not r
 """
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 from typing import Optional, Tuple, Union
 
+import cv2
 import numpy as np
 
 __all__ = ["CameraModel", "StereoCamera", "CalibrationError", "images_are_rectified"]
@@ -123,7 +125,6 @@ class StereoCamera:
         Raw images keep this camera's rectification maps: the same rectified pixels, read with
         the corrected principal point (in a calibration file of raw images P also defines the
         rectification, so there the fix is a new stereo calibration)."""
-        import copy
         maps = None if self.is_rectified else self.rectify_maps()
         left, right = copy.deepcopy(self.left), copy.deepcopy(self.right)
         cx_r = float(left.P[0, 2]) - float(doffs)
@@ -161,7 +162,6 @@ class StereoCamera:
     def rectify_maps(self):
         """cv2.remap tables (left, right), computed once from (K, D, R, P)."""
         if self._maps is None:
-            import cv2
             maps = []
             for cam in (self.left, self.right):
                 if cam.distortion_model in ("equidistant", "fisheye"):
@@ -179,7 +179,6 @@ class StereoCamera:
         """Rectify a raw pair (pass-through when the calibration says it is rectified)."""
         if self.is_rectified:
             return left, right
-        import cv2
         (l1, l2), (r1, r2) = self.rectify_maps()
         return (cv2.remap(left, l1, l2, cv2.INTER_LINEAR),
                 cv2.remap(right, r1, r2, cv2.INTER_LINEAR))

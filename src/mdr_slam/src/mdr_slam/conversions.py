@@ -21,10 +21,12 @@ user can act on when a message is malformed, so a node can log it (throttled) an
 from __future__ import annotations
 
 from collections import OrderedDict
-from typing import Dict, Mapping, Optional, Sequence
+from typing import Mapping, Optional, Sequence
 
+import cv2
 import numpy as np
 
+import genpy
 from geometry_msgs.msg import Pose, PoseStamped, Transform, TransformStamped
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2, PointField
 from std_msgs.msg import Header
@@ -57,7 +59,6 @@ def make_header(stamp=None, frame_id: str = "", seq: int = 0) -> Header:
 
 
 def _to_time(stamp):
-    import genpy
     if isinstance(stamp, genpy.Time):
         return stamp
     if isinstance(stamp, (int, np.integer)):  # nanoseconds
@@ -135,7 +136,6 @@ def image_to_numpy(msg: Image, to_mono: bool = False) -> np.ndarray:
     if ch == 1:
         arr = arr[:, :, 0]
     if to_mono and enc in _GREY_CODES:
-        import cv2
         arr = cv2.cvtColor(np.ascontiguousarray(arr), getattr(cv2, "COLOR_" + _GREY_CODES[enc]))
     return arr
 
@@ -201,7 +201,6 @@ def compressed_image_to_mono8(msg: CompressedImage) -> np.ndarray:
     :func:`image_to_mono8` does. Raises ConversionError for compressedDepth images (depth maps)
     and for empty, undecodable or truncated data.
     """
-    import cv2
     fmt = msg.format or ""
     if "compresseddepth" in fmt.lower():
         raise ConversionError("CompressedImage format %r is a compressed depth image, not a camera "
@@ -243,7 +242,6 @@ def numpy_to_compressed_image(arr: np.ndarray, fmt: str = "jpeg", stamp=None, fr
     with the ``format`` compressed_image_transport writes: "mono8; jpeg compressed ",
     "bgr8; jpeg compressed bgr8", "mono8; png compressed ", "bgr8; png compressed bgr8".
     ``quality`` is the jpeg quality (0-100)."""
-    import cv2
     arr = np.asarray(arr)
     if fmt not in ("jpeg", "png"):
         raise ConversionError("compressed format must be 'jpeg' or 'png', not %r" % (fmt,))

@@ -64,7 +64,6 @@ def pos_quat_from_T(T: np.ndarray):
 def interpolate_poses(T0: np.ndarray, T1: np.ndarray, w) -> np.ndarray:
     """Poses a share ``w`` (n,) of the way from ``T0`` to ``T1`` (n, 4, 4): rotations along the
     geodesic (slerp), translations linear."""
-    from scipy.spatial.transform import Rotation
     T0, T1 = np.asarray(T0, float).reshape(-1, 4, 4), np.asarray(T1, float).reshape(-1, 4, 4)
     w = np.broadcast_to(np.asarray(w, float), (len(T0),))
     R0 = Rotation.from_matrix(T0[:, :3, :3])

@@ -24,6 +24,11 @@ import math
 from typing import NamedTuple, Optional, Tuple
 
 import numpy as np
+from scipy.ndimage import distance_transform_edt
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import dijkstra
+
+from .fusion import occupancy_grid, voxel_downsample
 
 __all__ = ["Plan", "world_to_cell", "cell_to_world", "grid_from_msg", "traversable", "plan_path",
            "map_min_confidence", "map_products"]
@@ -91,7 +96,6 @@ def traversable(grid: np.ndarray, resolution: float, robot_radius: float = 0.0,
     if not unknown_traversable:
         ok &= g >= 0
     if robot_radius > 0 and occupied.any():
-        from scipy.ndimage import distance_transform_edt
         dist = distance_transform_edt(~occupied) * float(resolution)
         ok &= dist > robot_radius + 1e-6 * float(resolution)   # "within" includes the radius
     return ok
@@ -144,8 +148,6 @@ def _backtrack(parent: np.ndarray, s: int, g: int, W: int) -> np.ndarray:
 def _dijkstra(ok: np.ndarray, s: Tuple[int, int], g: Tuple[int, int]) -> Optional[np.ndarray]:
     """SciPy's Dijkstra on the traversable-cell graph (edges built vectorized, same moves and
     corner rule as :func:`_astar`)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import dijkstra
     H, W = ok.shape
     idx = np.arange(H * W).reshape(H, W)
     rows, cols, w = [], [], []
@@ -235,7 +237,6 @@ def map_products(cloud: dict, params: dict):
     cell the grid marks occupied: the two layers agree. Below it, young points that the fusion
     may still remove as noise become lasting obstacles the grid does not have.
     """
-    from .fusion import occupancy_grid, voxel_downsample
     p = params
     mc_disp, mc_grid = map_min_confidence(p)
     conf_all = np.asarray(cloud["confidence"])

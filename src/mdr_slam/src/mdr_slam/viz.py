@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from typing import Optional, Sequence, Tuple
 
+import cv2
 import numpy as np
 
 __all__ = ["top_view_image", "perspective_image", "save_map_pictures", "look_at", "drop_ceiling"]
@@ -25,6 +26,7 @@ def drop_ceiling(xyz: np.ndarray, up_axis: int = 2, band: float = 0.25, share: f
 
 def _colormap(values: np.ndarray, lo: float, hi: float, name: str = "turbo") -> np.ndarray:
     """(N, 3) uint8 RGB of ``values`` through a matplotlib colormap."""
+    # matplotlib (0.1 s, with pyplot 0.3 s, to import) only where a picture is drawn
     from matplotlib import colormaps
     t = np.clip((values - lo) / max(hi - lo, 1e-9), 0.0, 1.0)
     return (colormaps[name](t)[:, :3] * 255).astype(np.uint8)
@@ -147,7 +149,6 @@ def save_map_pictures(xyz: np.ndarray, out_prefix: str, values: Optional[np.ndar
     fig.savefig(top, bbox_inches="tight")
     plt.close(fig)
     persp = out_prefix + "_perspective.png"
-    import cv2
     cv2.imwrite(persp, perspective_image(xyz, values, up_axis=up_axis)[:, :, ::-1])
     return top, persp
 

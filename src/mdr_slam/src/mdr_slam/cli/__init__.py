@@ -9,6 +9,8 @@ import argparse
 import importlib
 import sys
 
+from .. import __version__
+
 # (command, module, one-line help)
 COMMANDS = [
     ("sim", "main_sim", "render a simulated stereo sequence with exact ground truth to a bag"),
@@ -23,7 +25,6 @@ COMMANDS = [
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .. import __version__
     parser = argparse.ArgumentParser(
         prog="mdr", description="MDR-SLAM: modular decoupled stereo dense mapping (ROS 1).")
     parser.add_argument("--version", action="version", version="mdr_slam " + __version__)

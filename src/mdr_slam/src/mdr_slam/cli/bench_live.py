@@ -16,6 +16,16 @@ from collections import OrderedDict
 from typing import Dict, List, Optional
 
 import numpy as np
+import psutil
+import yaml
+
+from ..bagio import image_topics, read_ground_truth
+from ..conversions import ConversionError, pose_stamped_to_matrix
+from ..eval.trajectory import ate
+from ..io import Trajectory
+from ..io.trajectory import write_tum
+from ..pipeline import load_params
+from .main_run import _overrides
 
 NODES = ("pose_node", "depth_node", "fusion_node")
 
@@ -29,6 +39,8 @@ def _free_port() -> int:
 
 
 def _bag_duration(path: str) -> float:
+    # the live run's ROS side (rosbag, rospy, rosgraph, messages) where it runs: mdr's
+    # modules import without rospy and rosbag
     import rosbag
     with rosbag.Bag(path) as b:
         return float(b.get_end_time() - b.get_start_time())
@@ -37,7 +49,6 @@ def _bag_duration(path: str) -> float:
 def _stereo_pairs(path: str, args=None) -> int:
     """Left images in the bag on the topic the nodes read (the options of ``mdr bench``)."""
     import rosbag
-    from ..bagio import image_topics
     topics = {k: getattr(args, k) for k in ("left_image", "right_image")
               if getattr(args, k, None)}
     left = image_topics(topics, getattr(args, "image_transport", None) or "raw")["left"]
@@ -48,7 +59,6 @@ def _stereo_pairs(path: str, args=None) -> int:
 
 def _node_processes(launch_pid: int) -> Dict[str, "object"]:
     """{node name: psutil.Process} among roslaunch's children (their argv has __name:=<node>)."""
-    import psutil
     out = {}
     try:
         for p in psutil.Process(launch_pid).children(recursive=True):
@@ -69,10 +79,6 @@ def _live_ate(bag: str, poses, out_dir: Optional[str] = None,
     """ATE of the pose node's poses as it published them (before later BA and loop corrections
     of the past) against the bag's ground-truth topic; None when the bag has none. The poses are
     written to ``out_dir/live_trajectory.tum`` (TUM format) when given."""
-    from ..bagio import read_ground_truth
-    from ..eval.trajectory import ate
-    from ..io import Trajectory
-    from ..io.trajectory import write_tum
     if len(poses) == 0:
         return None
     poses = sorted(poses, key=lambda p: p[0])
@@ -127,7 +133,6 @@ class _Listener:
         ]
 
     def _pose(self, msg):
-        from ..conversions import ConversionError, pose_stamped_to_matrix
         try:
             T = pose_stamped_to_matrix(msg)
         except ConversionError:
@@ -190,9 +195,6 @@ def _stats(v) -> Dict[str, float]:
 def _param_files(args) -> list:
     """``--set NODE.KEY=VALUE`` for the live nodes: each overridden node gets its config file (with
     the dataset preset) plus the overrides written to ``DIR/<node>.yaml``, passed to the launch."""
-    import yaml
-    from ..pipeline import load_params
-    from .main_run import _overrides
     out = []
     preset = getattr(args, "preset", None)
     if preset:
@@ -210,7 +212,6 @@ def _param_files(args) -> list:
 
 
 def run_live(args) -> int:
-    import psutil
     os.makedirs(args.out, exist_ok=True)
     bag = os.path.abspath(args.bag)
     dur_bag = _bag_duration(bag)
@@ -558,6 +559,7 @@ def _report_md(r) -> str:
 def _plot(samples, path, timeline=None):
     if not samples:
         return
+    # matplotlib: 0.3 s to import and it must get the Agg backend first; only the plot needs it
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

@@ -33,6 +33,10 @@ import sys
 import time
 from collections import OrderedDict
 
+import numpy as np
+
+from ..eval import ate, map_alignment, map_metrics
+from ..io import cloud_xyz, read_cloud, read_tum
 from . import mdr_command
 from .main_run import add_bag_input_arguments, bag_input_argv
 
@@ -102,6 +106,7 @@ def run(args) -> int:
     if not args.ablation:
         if not args.bag:
             raise SystemExit("mdr bench: give a BAG for the live benchmark, or --ablation")
+        # the live benchmark when it runs: `mdr --help` imports this module
         from .bench_live import run_live
         # before --launch-arg's, so those still win (roslaunch keeps an argument's last value)
         args.launch_arg = _input_launch_args(args) + list(args.launch_arg or [])
@@ -110,9 +115,6 @@ def run(args) -> int:
 
 
 def run_ablation(args) -> int:
-    import numpy as np
-    from ..eval import ate, map_alignment, map_metrics
-    from ..io import cloud_xyz, read_cloud, read_tum
     os.makedirs(args.out, exist_ok=True)
     scenes = [s for s in args.scenes.split(",") if s]
     configs = [c for c in args.configs.split(",") if c]
@@ -231,10 +233,10 @@ def _markdown(report) -> str:
 
 
 def _plot(report, path):
+    # matplotlib: 0.3 s to import and it must get the Agg backend first; only the plot needs it
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import numpy as np
     scenes = list(report["results"])
     configs = report["configs"]
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), dpi=100)

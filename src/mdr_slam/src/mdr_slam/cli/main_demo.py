@@ -24,11 +24,14 @@ import argparse
 import json
 import os
 import subprocess
-import sys
 import time
 
 import numpy as np
 
+from ..eval import ate, map_alignment, map_metrics
+from ..eval.plot import plot_ate
+from ..io import cloud_xyz, read_cloud, read_tum
+from ..viz import save_map_pictures
 from . import mdr_command
 from .main_run import add_bag_input_arguments, bag_input_argv
 
@@ -59,10 +62,6 @@ def _step(text):
 
 
 def run(args) -> int:
-    from ..eval import ate, map_alignment, map_metrics
-    from ..eval.plot import plot_ate
-    from ..io import cloud_xyz, read_cloud, read_tum
-    from ..viz import save_map_pictures
     t_start = time.time()
     sample = os.path.join(args.out, "sample" if args.scene == "office" else "sample_" + args.scene)
     demo = os.path.join(args.out, "demo")
@@ -105,6 +104,7 @@ def run(args) -> int:
                                    title="MDR-SLAM map (%s sample)" % args.scene)
     rviz_png = None
     if not args.no_rviz:
+        # the rviz screenshot when it is taken: `mdr --help` imports this module
         from .rviz_shot import rviz_screenshot
         try:
             shot = rviz_screenshot(os.path.join(demo, "map.ply"), os.path.join(demo, "map_rviz.png"),

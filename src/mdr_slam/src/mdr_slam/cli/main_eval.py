@@ -11,6 +11,16 @@ import json
 import os
 import sys
 
+import numpy as np
+
+from ..eval.depth import (MIDDLEBURY, depth_error_metrics, depth_metrics, load_middlebury,
+                          read_disparity)
+from ..eval.map import map_metrics
+from ..eval.plot import plot_ate, plot_map_errors
+from ..eval.trajectory import ate, read_for_eval, rpe
+from ..io.atomic import atomic_write
+from ..io.pointcloud import cloud_xyz, read_cloud
+
 
 def add_parser(subparsers, name, help_text):
     p = subparsers.add_parser(name, help=help_text, description=help_text)
@@ -85,19 +95,16 @@ def _emit(stats, path=None):
     text = json.dumps(stats, indent=2, sort_keys=True, default=float)
     print(text)
     if path:
-        from ..io.atomic import atomic_write
         atomic_write(path, text + "\n", "w")
 
 
 def _read_pair(args):
-    from ..eval.trajectory import read_for_eval
     est = read_for_eval(args.est, args.est_format or args.format, args.est_times)
     gt = read_for_eval(args.gt, args.gt_format or args.format, args.gt_times)
     return est, gt
 
 
 def run_ate(args):
-    from ..eval.trajectory import ate
     try:
         est, gt = _read_pair(args)
         res = ate(est, gt, args.align, args.max_diff, args.offset, args.n_to_align)
@@ -105,7 +112,6 @@ def run_ate(args):
         print("mdr eval ate: %s" % e, file=sys.stderr)
         return 1
     if args.plot:
-        from ..eval.plot import plot_ate
         plot_ate(res, args.plot, args.plane)
         res.stats["plot"] = os.path.abspath(args.plot)
     _emit(res.stats, args.json)
@@ -113,7 +119,6 @@ def run_ate(args):
 
 
 def run_rpe(args):
-    from ..eval.trajectory import rpe
     try:
         est, gt = _read_pair(args)
         res = rpe(est, gt, args.delta, args.delta_unit, args.align, args.max_diff, args.offset,
@@ -126,8 +131,6 @@ def run_rpe(args):
 
 
 def run_map(args):
-    from ..eval.map import map_metrics
-    from ..io.pointcloud import cloud_xyz, read_cloud
     try:
         thresholds = [float(t) for t in args.thresholds.split(",") if t.strip()]
         est = read_cloud(args.est)
@@ -139,7 +142,6 @@ def run_map(args):
         print("mdr eval map: %s" % e, file=sys.stderr)
         return 1
     if args.plot:
-        from ..eval.plot import plot_map_errors
         plot_map_errors(res.pop("_d_acc"), res.pop("_d_comp"), args.plot, thresholds)
         res["plot"] = os.path.abspath(args.plot)
     _emit(res, args.json)
@@ -156,9 +158,6 @@ def _frames(path):
 
 
 def run_depth(args):
-    import numpy as np
-    from ..eval.depth import (MIDDLEBURY, depth_error_metrics, depth_metrics, load_middlebury,
-                              read_disparity)
     try:
         key = os.path.basename(os.path.normpath(args.gt)).lower()
         if key in MIDDLEBURY and (os.path.isdir(args.gt) or not os.path.exists(args.gt)):

@@ -9,6 +9,10 @@ from __future__ import annotations
 
 import sys
 
+from ..bagio import StereoBagWriter
+from ..camera import CalibrationError
+from ..io.datasets import DatasetError, load_euroc, load_kitti
+
 
 def add_parser(subparsers, name, help_text):
     p = subparsers.add_parser(name, help=help_text, description=help_text)
@@ -46,7 +50,6 @@ def add_parser(subparsers, name, help_text):
 def import_dataset(dataset, out: str, max_frames=None, time_offset: float = 0.0,
                    ground_truth: bool = True, compression: str = "none", log=None) -> dict:
     """Write a :class:`~mdr_slam.io.datasets.StereoDataset` to ``out``; returns counts."""
-    from ..bagio import StereoBagWriter   # ROS (rosbag) only when a bag is written
     log = log or (lambda msg: None)
     gt = dict(dataset.ground_truth_at()) if ground_truth else {}
     n = n_gt = 0
@@ -66,8 +69,6 @@ def import_dataset(dataset, out: str, max_frames=None, time_offset: float = 0.0,
 
 
 def run(args):
-    from ..camera import CalibrationError
-    from ..io.datasets import DatasetError, load_euroc, load_kitti
     if not getattr(args, "dataset", None):
         args._parser.print_help()
         return 2

@@ -11,6 +11,10 @@ from __future__ import annotations
 
 import sys
 
+import numpy as np
+
+from ..io import read_cloud
+
 
 def add_parser(subparsers, name="mesh", help_text=""):
     p = subparsers.add_parser(name, help=help_text, description=__doc__.split("\n\n")[0])
@@ -38,9 +42,8 @@ def add_parser(subparsers, name="mesh", help_text=""):
 
 
 def run(args) -> int:
-    import numpy as np
+    # fusion when the command runs: `mdr --help` imports this module
     from ..fusion.mesh import default_K, mesh_from_map, views_from_trajectory, write_mesh
-    from ..io import read_cloud
     cloud = read_cloud(args.map)
     if not len(cloud.get("x", [])):
         print("mdr mesh: %s has no points" % args.map, file=sys.stderr)

@@ -88,7 +88,8 @@ def add_parser(subparsers, name: str = "sim", help_text: str = ""):
 
 
 def run(args) -> int:
-    from ..sim import generate
+    # the simulator when the command runs: `mdr --help` imports this module
+    from ..sim import generate, generate_driver
     if args.duration <= 0 or args.rate <= 0 or args.map_cell <= 0 or args.scale <= 0:
         print("mdr sim: --duration, --rate, --map-cell and --scale must be positive",
               file=sys.stderr)
@@ -114,7 +115,6 @@ def run(args) -> int:
         if driver == "none":
             s = generate(args.out, **kwargs)
         else:
-            from ..sim.driver import generate_driver
             s = generate_driver(args.out, driver, compressed=args.compressed,
                                 jpeg_quality=args.jpeg_quality, right_lag_ms=args.right_lag,
                                 odom=args.odom, odom_scale_error=args.odom_drift[0],

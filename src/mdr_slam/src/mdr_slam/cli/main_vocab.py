@@ -8,6 +8,9 @@ from __future__ import annotations
 
 import os
 import sys
+import time
+
+import cv2
 
 
 def add_parser(subparsers, name, help_text):
@@ -27,7 +30,6 @@ def add_parser(subparsers, name, help_text):
 
 
 def _folder_images(folders, limit):
-    import cv2
     n = 0
     for folder in folders:
         for root, _, files in os.walk(folder):
@@ -42,7 +44,7 @@ def _folder_images(folders, limit):
 
 
 def run(args) -> int:
-    import time
+    # the pose package when the command runs: `mdr --help` imports this module
     from ..pose.vocabulary import (ORBVocabulary, builtin_training_images, default_vocabulary_path,
                                    image_descriptor_sets)
     for f in args.images:

@@ -23,7 +23,12 @@ import time
 from typing import List, Optional
 
 import numpy as np
+import yaml
+from PIL import Image
 
+from ..io import cloud_xyz, read_cloud, read_tum
+from ..pipeline import config_dir
+from ..viz import colourful_share, read_xwd
 from .bench_live import _free_port
 
 
@@ -70,7 +75,6 @@ def _start_xvfb(size, fbdir: str, log, procs: List[subprocess.Popen]) -> str:
 
 def _rviz_config(template: str, out: str, center, distance: float) -> str:
     """The shipped rviz config with its orbit view aimed at the map."""
-    import yaml
     cfg = yaml.safe_load(open(template))
     view = cfg["Visualization Manager"]["Views"]["Current"]
     view["Focal Point"] = {"X": float(center[0]), "Y": float(center[1]), "Z": float(center[2])}
@@ -86,11 +90,12 @@ def _rviz_config(template: str, out: str, center, distance: float) -> str:
 def _publish_path_main(argv=None) -> int:
     """``--publish-path TRAJ.tum``: a latched nav_msgs/Path in ``map`` and a static map->base_link
     identity transform (so rviz's fixed frame exists), until interrupted."""
+    # ROS (rospy, tf2_ros, rosgraph, messages) where it is used: mdr's modules import
+    # without rospy and tf2_ros
     import rospy
     import tf2_ros
     from geometry_msgs.msg import PoseStamped, TransformStamped
     from nav_msgs.msg import Path
-    from ..io import read_tum
     ap = argparse.ArgumentParser()
     ap.add_argument("--publish-path", required=True)
     a = ap.parse_args(argv)
@@ -121,13 +126,10 @@ def _publish_path_main(argv=None) -> int:
 def rviz_screenshot(map_ply: str, out_png: str, trajectory: Optional[str] = None,
                     rviz_config: Optional[str] = None, size=(1200, 800), timeout: float = 90.0,
                     log_dir: Optional[str] = None) -> dict:
-    from ..io import cloud_xyz, read_cloud
-    from ..viz import colourful_share, read_xwd
     for exe in ("rviz", "Xvfb", "roscore"):
         if shutil.which(exe) is None:
             raise RuntimeError("%s is not installed" % exe)
     if rviz_config is None:
-        from ..pipeline import config_dir
         rviz_config = os.path.join(os.path.dirname(config_dir()), "rviz", "mdr.rviz")
     xyz = cloud_xyz(read_cloud(map_ply))
     xyz = xyz[np.isfinite(xyz).all(axis=1)]
@@ -189,7 +191,6 @@ def rviz_screenshot(map_ply: str, out_png: str, trajectory: Optional[str] = None
             last = share
         else:
             raise RuntimeError("rviz drew no map within %.0f s (colourful share %.4f)" % (timeout, last))
-        from PIL import Image
         os.makedirs(os.path.dirname(os.path.abspath(out_png)), exist_ok=True)
         part = out_png + ".part.png"
         Image.fromarray(img).save(part)

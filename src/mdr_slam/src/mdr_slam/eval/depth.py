@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 from typing import Dict, Optional, Tuple
 
+import cv2
 import numpy as np
 
 __all__ = ["depth_metrics", "depth_error_metrics", "load_middlebury", "read_disparity",
@@ -109,7 +110,6 @@ def middlebury_root() -> Optional[str]:
 
 def read_disparity(path: str, scale: float = 1.0) -> np.ndarray:
     """A disparity (or depth) image as float32 (stored value / ``scale``); .npy, .pfm, PNG/PGM/TIFF."""
-    import cv2
     if path.endswith(".npy"):
         return np.load(path).astype(np.float32) / np.float32(scale)
     img = cv2.imread(path, cv2.IMREAD_UNCHANGED | cv2.IMREAD_ANYDEPTH)
@@ -127,7 +127,6 @@ def load_middlebury(name: str, root: Optional[str] = None,
     ``name`` is tsukuba, venus, teddy or cones (a folder under ``root``), or a folder path whose
     basename is one of those. Images are grey uint8 unless ``grey=False`` (BGR).
     """
-    import cv2
     key = os.path.basename(os.path.normpath(name)).lower()
     if key not in MIDDLEBURY:
         raise ValueError("unknown Middlebury pair %r (one of %s)" % (name, ", ".join(sorted(MIDDLEBURY))))

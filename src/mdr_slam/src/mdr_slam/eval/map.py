@@ -18,6 +18,7 @@ from __future__ import annotations
 from typing import Dict, Optional, Sequence
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 __all__ = ["map_metrics", "nearest_distances", "SURFACE_LABELS", "DEFAULT_THRESHOLDS"]
 
@@ -28,7 +29,6 @@ DEFAULT_THRESHOLDS = (0.01, 0.02, 0.05, 0.10)
 def _kdtree(ref: np.ndarray):
     """cKDTree tuned for millions of 3-D points: small leaves, median-free splits (faster build
     and queries here than the balanced default)."""
-    from scipy.spatial import cKDTree
     return cKDTree(ref, leafsize=16, balanced_tree=False, compact_nodes=False)
 
 

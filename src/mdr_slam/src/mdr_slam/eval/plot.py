@@ -6,10 +6,12 @@ accuracy distance histogram and the accuracy/completeness curves over the thresh
 """
 from __future__ import annotations
 
+import os
 from typing import Optional, Sequence
 
 import numpy as np
 
+from ..io.atomic import atomic_path
 from .trajectory import TrajectoryErrors
 
 __all__ = ["plot_ate", "plot_map_errors"]
@@ -18,6 +20,7 @@ _AXES = {"x": 0, "y": 1, "z": 2}
 
 
 def _pyplot():
+    # matplotlib: 0.3 s to import and it must get the Agg backend first; only the plots need it
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -34,8 +37,6 @@ def _plane(gt_xyz: np.ndarray, plane: str) -> str:
 
 def plot_ate(res: TrajectoryErrors, out: str, plane: str = "xy", title: Optional[str] = None) -> str:
     """Save the trajectory-vs-ground-truth plane plot and APE(t) to ``out`` (PNG/PDF/SVG)."""
-    from ..io.atomic import atomic_path
-    import os
     plt = _pyplot()
     plane = _plane(res.gt_xyz, plane)
     i, j = _AXES[plane[0]], _AXES[plane[1]]
@@ -70,8 +71,6 @@ def plot_ate(res: TrajectoryErrors, out: str, plane: str = "xy", title: Optional
 def plot_map_errors(d_acc: np.ndarray, d_comp: np.ndarray, out: str,
                     thresholds: Sequence[float] = (0.01, 0.02, 0.05, 0.10)) -> str:
     """Histogram of estimated-to-ground-truth distances and accuracy/completeness vs threshold."""
-    from ..io.atomic import atomic_path
-    import os
     plt = _pyplot()
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))
     hi = max(float(np.percentile(d_acc, 99)), max(thresholds)) if len(d_acc) else max(thresholds)

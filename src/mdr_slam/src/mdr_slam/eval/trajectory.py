@@ -7,12 +7,13 @@ everyone else computes (the tests reproduce evo's and kitti-odom-eval's publishe
 """
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 from typing import Dict, Optional
 
 import numpy as np
 
-from ..io.trajectory import Trajectory
+from ..io.trajectory import Trajectory, read_kitti_poses, read_trajectory
 
 __all__ = ["ALIGNMENTS", "TrajectoryErrors", "to_evo", "from_evo", "associate", "align",
            "ate", "rpe", "read_for_eval", "summary_json"]
@@ -34,6 +35,7 @@ class TrajectoryErrors:
 
 def to_evo(traj: Trajectory):
     """mdr Trajectory -> evo PoseTrajectory3D (evo wants quaternions w, x, y, z)."""
+    # evo is optional: mdr_slam.eval (map and depth metrics) imports without it
     from evo.core.trajectory import PoseTrajectory3D
     return PoseTrajectory3D(positions_xyz=np.asarray(traj.positions, dtype=float),
                             orientations_quat_wxyz=np.asarray(traj.quats, dtype=float)[:, [3, 0, 1, 2]],
@@ -141,7 +143,6 @@ def rpe(est: Trajectory, gt: Trajectory, delta: float = 10.0, unit: str = "m",
 
 def read_for_eval(path: str, fmt: Optional[str] = None, times: Optional[str] = None) -> Trajectory:
     """Read a trajectory for evaluation; ``times`` gives stamps (one per line) to a KITTI file."""
-    from ..io.trajectory import read_trajectory, read_kitti_poses
     if times:
         stamps = np.loadtxt(times, ndmin=1).reshape(-1)
         tr = read_kitti_poses(path)
@@ -153,7 +154,6 @@ def read_for_eval(path: str, fmt: Optional[str] = None, times: Optional[str] = N
 
 
 def summary_json(stats: Dict[str, object]) -> str:
-    import json
     return json.dumps(stats, indent=2, sort_keys=True)
 
 

@@ -15,8 +15,11 @@ import os
 from dataclasses import dataclass, field
 from typing import Callable, Iterator, List, Optional, Tuple
 
+import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
+from ..calib import euroc_T_BS, load_euroc_calibration, load_kitti_calibration
 from ..camera import StereoCamera
 from .trajectory import Trajectory, read_euroc_csv, read_kitti_poses
 
@@ -47,7 +50,6 @@ class StereoDataset:
 
     @staticmethod
     def read_pair(lpath: str, rpath: str) -> Tuple[np.ndarray, np.ndarray]:
-        import cv2
         out = []
         for p in (lpath, rpath):
             img = cv2.imread(p, cv2.IMREAD_UNCHANGED)
@@ -75,7 +77,6 @@ class StereoDataset:
 
 def interpolate_poses(traj: Trajectory, stamps: np.ndarray, max_gap: float = 0.2):
     """(N, 4, 4) poses of ``traj`` at ``stamps`` and an (N,) validity mask (vectorized SLERP)."""
-    from scipy.spatial.transform import Rotation
     order = np.argsort(traj.stamps)
     s = traj.stamps[order]
     p = traj.positions[order]
@@ -139,7 +140,6 @@ def load_euroc(path: str, ground_truth: Optional[str] = None,
     else ``state_groundtruth_estimate0/data.csv`` (the body/IMU pose) moved to the left camera
     with cam0's ``T_BS``, else None.
     """
-    from ..calib import euroc_T_BS, load_euroc_calibration
     root = _euroc_root(path)
     skip = on_skip or (lambda msg: None)
     camera = load_euroc_calibration(os.path.join(root, "cam0", "sensor.yaml"),
@@ -193,7 +193,6 @@ def load_kitti(path: str, poses: Optional[str] = None, rate_hz: float = 10.0,
     ``poses`` may point at the ground truth elsewhere (``dataset/poses/06.txt``). ``doffs``
     corrects calib.txt's principal point difference (:func:`mdr_slam.calib.load_kitti_calibration`).
     """
-    from ..calib import load_kitti_calibration
     skip = on_skip or (lambda msg: None)
     for ln, rn in (("image_0", "image_1"), ("image_l", "image_r")):
         if os.path.isdir(os.path.join(path, ln)):
@@ -213,7 +212,6 @@ def load_kitti(path: str, poses: Optional[str] = None, rate_hz: float = 10.0,
             skip(skipped[-1])
     if not pairs:
         raise DatasetError("%s: no stereo pairs in %s/ and %s/" % (path, ln, rn))
-    import cv2
     first = cv2.imread(pairs[0][1], cv2.IMREAD_UNCHANGED)
     if first is None:
         raise DatasetError("cannot read image %s" % pairs[0][1])

@@ -5,9 +5,8 @@ Python). Writes are atomic. Mesh files are Open3D's business (see mdr_slam.fusio
 from __future__ import annotations
 
 import os
-import re
 from collections import OrderedDict
-from typing import Dict, Mapping
+from typing import Mapping
 
 import numpy as np
 

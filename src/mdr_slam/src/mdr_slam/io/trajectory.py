@@ -4,13 +4,12 @@ Metrics on trajectories live in mdr_slam.eval (built on evo); this module only r
 """
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
-from ..geometry import R_to_quat, make_T
 from .atomic import atomic_path
 
 
@@ -35,14 +34,12 @@ class Trajectory:
     @classmethod
     def from_matrices(cls, stamps, Ts) -> "Trajectory":
         Ts = np.asarray(Ts, dtype=float).reshape(-1, 4, 4)
-        from scipy.spatial.transform import Rotation
         q = Rotation.from_matrix(Ts[:, :3, :3]).as_quat() if len(Ts) else np.zeros((0, 4))
         q[q[:, 3] < 0] *= -1
         return cls(np.asarray(stamps, dtype=float), Ts[:, :3, 3], q)
 
     def matrices(self) -> np.ndarray:
         """(N, 4, 4) poses."""
-        from scipy.spatial.transform import Rotation
         Ts = np.tile(np.eye(4), (len(self), 1, 1))
         if len(self):
             Ts[:, :3, :3] = Rotation.from_quat(self.quats).as_matrix()

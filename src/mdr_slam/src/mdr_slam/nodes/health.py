@@ -6,10 +6,19 @@ status, so monitors (rqt_robot_monitor, ``mdr bench``) read the same names from 
 """
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import os
 import threading
 import time
 from collections import deque
+
+import rospy
+
+try:
+    import psutil
+except ImportError:   # CPU % is then NaN and RSS comes from /proc
+    psutil = None
 
 __all__ = ["ProcessHealth", "RateWindow", "rss_bytes", "trim_heap"]
 
@@ -27,8 +36,6 @@ def trim_heap() -> bool:
         return False
     try:
         if _LIBC is None:
-            import ctypes
-            import ctypes.util
             _LIBC = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
         return bool(_LIBC.malloc_trim(0))
     except (OSError, AttributeError):
@@ -38,12 +45,10 @@ def trim_heap() -> bool:
 
 def rss_bytes() -> int:
     """Resident set size of this process in bytes (psutil, or /proc when psutil is missing)."""
-    try:
-        import psutil
+    if psutil is not None:
         return int(psutil.Process().memory_info().rss)
-    except ImportError:
-        with open("/proc/self/statm") as f:
-            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
 
 
 class ProcessHealth:
@@ -55,12 +60,9 @@ class ProcessHealth:
         self._proc = None
         self.trim_period = float(trim_period)  # s between two trim_heap calls (0 = never)
         self._last_trim = time.monotonic()
-        try:
-            import psutil
+        if psutil is not None:
             self._proc = psutil.Process()
             self._proc.cpu_percent(None)     # starts the interval
-        except ImportError:
-            pass
 
     def cpu_percent(self) -> float:
         """CPU use since the last call (100 = one full core); NaN without psutil."""
@@ -111,7 +113,6 @@ def update_diagnostics(updater) -> None:
     """``diagnostic_updater.Updater.update()`` that survives ROS time jumping back (a looping bag):
     the updater waits until ``last_time + period``, which lies in the future after a jump, so
     /diagnostics would go quiet for the bag's length. Reset it when now is before its last update."""
-    import rospy
     last = getattr(updater, "last_time", None)
     if last is not None and rospy.Time.now() < last:
         updater.last_time = rospy.Time(0)

@@ -26,6 +26,9 @@ import json
 import os
 import threading
 import time
+import tracemalloc
+
+from .health import rss_bytes
 
 __all__ = ["start_from_env", "smaps_summary", "mallinfo", "set_mmap_threshold"]
 
@@ -114,11 +117,9 @@ class MemDebug:
         self.prev_snap = None
         self.t0 = time.monotonic()
         if trace:
-            import tracemalloc
             tracemalloc.start(1)
 
     def sample(self) -> dict:
-        from .health import rss_bytes
         rec = {"t": round(time.monotonic() - self.t0, 1), "pid": os.getpid(),
                "rss_mb": round(rss_bytes() / 1e6, 2), "threads": threading.active_count()}
         rec.update(smaps_summary())
@@ -130,7 +131,6 @@ class MemDebug:
             rec["gc_growth"] = sorted(((k, d) for k, d in grow.items() if d), key=lambda x: -x[1])[:self.top]
         self.prev_types = counts
         if self.trace:
-            import tracemalloc
             snap = tracemalloc.take_snapshot()
             rec["tracemalloc_mb"] = round(tracemalloc.get_tracemalloc_memory() / 1e6, 2)
             rec["traced_mb"] = round(tracemalloc.get_traced_memory()[0] / 1e6, 2)

@@ -17,6 +17,9 @@ import time
 from collections import deque
 from typing import Callable
 
+import rospy
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+
 from ..stereo_sync import StereoSync
 
 TRANSPORTS = ("raw", "compressed")
@@ -28,8 +31,6 @@ class StereoInput:
 
     def __init__(self, node: str, callback: Callable, warn, tolerance: float = 0.0,
                  transport: str = "raw", with_info: bool = True, queue_size: int = 10):
-        import rospy
-        from sensor_msgs.msg import CameraInfo, CompressedImage, Image
         if transport not in TRANSPORTS:
             raise ValueError("image_transport must be one of %s, got %r" % (TRANSPORTS, transport))
         self.node, self.callback, self.warn = node, callback, warn

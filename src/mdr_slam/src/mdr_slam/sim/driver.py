@@ -35,9 +35,16 @@ import os
 from dataclasses import dataclass
 from typing import Dict, List, Optional, Tuple
 
+import cv2
 import numpy as np
+import yaml
+from scipy.spatial.transform import Rotation
 
+from ..camera import CameraModel
 from ..geometry import inv_T, make_T, R_to_quat
+from ..io.atomic import atomic_write
+from .generate import generate
+from .render import _EUROC_RAW
 
 __all__ = ["DRIVERS", "DriverProfile", "PROFILES", "DriverConfig", "DriverBagWriter",
            "generate_driver", "static_transforms", "compose_static", "wheel_odometry",
@@ -232,9 +239,6 @@ def raw_calibration(camera):
     """(left, right) raw CameraModels for rectified images of ``camera``: EuRoC-like
     radial-tangential distortion and rectification rotations, scaled to the image width, with
     P = ``camera``'s rectified projections (what the images were rendered with)."""
-    from scipy.spatial.transform import Rotation
-    from ..camera import CameraModel
-    from .render import _EUROC_RAW
     s = camera.left.width / 752.0
     out = []
     for (k, D, rv), m in zip(_EUROC_RAW, (camera.left, camera.right)):
@@ -261,6 +265,8 @@ class DriverBagWriter:
 
     def __init__(self, bag_path: str, camera, stamps: np.ndarray, Ts: np.ndarray, traj,
                  config: DriverConfig):
+        # ROS (rosbag, genpy, messages, conversions) only in the bag writer's methods:
+        # mdr_slam.sim imports without ROS
         import rosbag
         self.cfg = config
         self.prof = config.profile
@@ -302,7 +308,6 @@ class DriverBagWriter:
 
     def _queue_odometry(self, until: float) -> None:
         """Queue the odometry stamped before ``until`` (inclusive at the end of the bag)."""
-        from scipy.spatial.transform import Rotation
         import genpy
         from nav_msgs.msg import Odometry
         from tf2_msgs.msg import TFMessage
@@ -369,7 +374,6 @@ class DriverBagWriter:
         self.counts[topic] = self.counts.get(topic, 0) + 1
 
     def _image_msg(self, topic: str, img: np.ndarray, t, frame: str):
-        import cv2
         from .. import conversions as cv
         if self.prof.encoding == "bgr8":
             # equal channels: cv2's BGR2GRAY weights sum to exactly 1 in its fixed point, so
@@ -499,9 +503,6 @@ def generate_driver(out_dir: str, driver: str, compressed: Optional[str] = None,
     records (see the module doc) plus ``driver.yaml``; ``kwargs`` go to generate (not
     ``distort``: drivers publish rectified images). Returns generate's summary with
     ``driver`` (driver.yaml's content) and ``driver_yaml`` (its path)."""
-    import yaml
-    from ..io.atomic import atomic_write
-    from .generate import generate
     if kwargs.get("distort"):
         raise ValueError("a driver bag holds rectified images: --distort does not apply")
     if kwargs.get("camera") is not None and not kwargs["camera"].is_rectified:

@@ -16,12 +16,18 @@ from it by camera_info R (X_rect = R X_raw), exactly what rectification undoes.
 """
 from __future__ import annotations
 
+import ctypes
+import multiprocessing
 import os
 import time
 from typing import Callable, Dict, Optional
 
+import cv2
 import numpy as np
+import yaml
 
+from ..io import Trajectory, points_cloud, write_cloud, write_tum
+from ..io.atomic import atomic_write
 from .render import Simulator, sim_camera
 from .scene import LABELS, Scene, make_scene
 from .trajectory import build_trajectory
@@ -54,8 +60,6 @@ class _MapCells:
     def cloud(self, scene: Scene, mark: np.ndarray, close: int):
         """Cell centres of the marked cells, after a morphological closing that fills the
         one-pixel gaps far surfaces leave between pixel footprints (kernel ``close``)."""
-        import cv2
-        from ..io import points_cloud
         pts, nrm, lab = [], [], []
         kern = np.ones((close, close), np.uint8) if close > 1 else None
         for k, rc in enumerate(scene.rects):
@@ -87,6 +91,7 @@ class _GroundTruthBagWriter:
     /tf map -> ground_truth_camera at every frame stamp."""
 
     def __init__(self, bag_path, camera, stamps, Ts, traj):
+        # bagio needs rosbag: mdr_slam.sim imports without ROS, only writing a bag needs it
         from ..bagio import StereoBagWriter
         self.bag = StereoBagWriter(bag_path)
         self.camera, self.stamps, self.Ts = camera, stamps, Ts
@@ -117,7 +122,6 @@ def _worker_init():
     """Keep freed numpy temporaries in the heap (glibc would otherwise mmap/munmap every
     1-2 MB image-sized array: ~15% of render time went to page faults)."""
     try:
-        import ctypes
         libc = ctypes.CDLL("libc.so.6")
         libc.mallopt(-3, 256 << 20)   # M_MMAP_THRESHOLD
         libc.mallopt(-1, 512 << 20)   # M_TRIM_THRESHOLD
@@ -168,10 +172,6 @@ def generate(out_dir: str, scene="office", duration: float = 30.0, seed: int = 0
     ``write(i, left, right)`` gets the rendered frames in order and whose optional ``summary()``
     returns entries that update the returned summary and scene.yaml (see :mod:`.driver`).
     """
-    import multiprocessing
-    import yaml
-    from ..io import Trajectory, write_cloud, write_tum
-    from ..io.atomic import atomic_write
 
     t_start = time.perf_counter()
     out_dir = os.path.abspath(out_dir)
@@ -217,7 +217,6 @@ def generate(out_dir: str, scene="office", duration: float = 30.0, seed: int = 0
             # thread pool on top cost ~40% more CPU on 2 cores). It has to be switched off in
             # the parent BEFORE forking: cv2.setNumThreads inside a forked child deadlocks on
             # the parent's thread pool state. The parent's setting is restored right after.
-            import cv2
             n_cv = cv2.getNumThreads()
             cv2.setNumThreads(1)
             try:

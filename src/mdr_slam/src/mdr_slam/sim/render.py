@@ -13,11 +13,13 @@ from __future__ import annotations
 
 from typing import Dict, List, Optional, Sequence
 
+import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from ..camera import CameraModel, StereoCamera
 from ..geometry import inv_T, make_T
-from .scene import LABEL_SPECULAR, LIGHTMAP_STEP, Scene
+from .scene import LABEL_SPECULAR, LIGHTMAP_STEP, TILE, Scene
 
 __all__ = ["Simulator", "sim_camera", "distort_points"]
 
@@ -47,7 +49,6 @@ def sim_camera(width: int = 752, height: int = 480, fx: float = 458.0, fy: float
     cx, cy = (cx + 0.5) * s - 0.5, (cy + 0.5) * s - 0.5
     if not distort:
         return StereoCamera.from_rectified(W, H, fx, fy, cx, cy, baseline)
-    from scipy.spatial.transform import Rotation
     K_rect = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
     models = []
     for i, (k, D, rv) in enumerate(_EUROC_RAW):
@@ -102,7 +103,6 @@ class _View:
         """Normalized undistorted coordinates of every raw pixel: cv2.undistortPointsIter
         (many iterations: k1 = -0.28 needs them at the corners), then Newton polish against
         :func:`distort_points` so the rays match OpenCV's forward model to ~1e-6 px."""
-        import cv2
         uu, vv = np.meshgrid(u, v)
         pts = np.stack([uu.ravel(), vv.ravel()], -1).reshape(-1, 1, 2)
         und = cv2.undistortPointsIter(pts, self.K, self.D, None, None,
@@ -283,8 +283,6 @@ class Simulator:
         distance / (f cos(incidence)) with cos clamped at 0.25 so grazing floors blur rather
         than alias), times the baked light map, + the specular bands' view-dependent highlight.
         """
-        import cv2
-        from .scene import TILE
         at = self.scene.atlas()
         f32 = np.float32
         pid = g["pid"]
@@ -376,7 +374,6 @@ class Simulator:
                 acc = im if acc is None else acc + im
             imgs.append(acc if len(poses) == 1 else acc / np.float32(len(poses)))
         out = {}
-        import cv2
         for side, (name, im) in enumerate(zip(("left", "right"), imgs)):
             if gain != 1.0:
                 im = im * np.float32(gain)
@@ -405,7 +402,6 @@ class Simulator:
 def _sample(img: np.ndarray, x: np.ndarray, y: np.ndarray, border: int) -> np.ndarray:
     """Bilinear samples of ``img`` at 1-D float32 coordinates (cv2.remap wants 2-D maps with
     sides < 32767, so the coordinates are folded into rows of 1024)."""
-    import cv2
     n = len(x)
     if n == 0:
         return np.zeros(0, np.float32)

@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional, Tuple
 
+import cv2
 import numpy as np
 
 __all__ = ["Rect", "Texture", "Scene", "make_scene", "SCENES", "LABELS",
@@ -103,7 +104,6 @@ def texture_books(rng, n: int = 512) -> Texture:
 
 def texture_poster(rng, n: int = 512) -> Texture:
     """Poster / sign: random rectangles and disks of strong contrast on noise."""
-    import cv2
     t = np.zeros((n, n), np.float32)
     for _ in range(int(rng.integers(25, 45))):
         c = float(rng.uniform(-2, 2))

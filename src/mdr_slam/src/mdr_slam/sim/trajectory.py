@@ -17,6 +17,8 @@ from typing import List, Tuple, Union
 
 import numpy as np
 
+from .scene import SCENES, Scene, _Builder, _LAYOUTS
+
 __all__ = ["SimTrajectory", "build_trajectory", "make_trajectory", "camera_rotation", "KINDS"]
 
 KINDS = ("loop", "pure_rotation", "loop+pure_rotation", "corner")
@@ -168,7 +170,6 @@ def build_trajectory(kind_or_scene, duration: float = 30.0, seed: int = 0,
     ``kind_or_scene`` is a kind, a scene name, or a :class:`~mdr_slam.sim.scene.Scene`; a kind
     runs in ``scene`` when given, else in its natural scene (loop: office, corner: corridor).
     """
-    from .scene import Scene, SCENES, _LAYOUTS
     if isinstance(kind_or_scene, Scene):
         kind, params = kind_or_scene.default_trajectory, kind_or_scene.params
     elif kind_or_scene in SCENES:
@@ -185,7 +186,6 @@ def build_trajectory(kind_or_scene, duration: float = 30.0, seed: int = 0,
 def _layout_params(scene_name: str) -> dict:
     """The layout parameters (room centre, corridor corner...) of a named scene, without
     building its textures (they do not depend on the seed)."""
-    from .scene import _LAYOUTS, _Builder
     return _LAYOUTS[scene_name][0](_Builder(np.random.default_rng(0), 4.0), False)[2]
 
 
