@@ -59,36 +59,33 @@ def _stats(ts):
 
 
 def main(argv=None):
-    from mdr_slam.depth import DepthFilter, ElasMatcher, StereoDepth
+    from mdr_slam.config import split_known
+    from mdr_slam.depth import DepthConfig, DepthFilter, ElasMatcher, StereoDepth
+    from mdr_slam.nodes import node_configs
+    from mdr_slam.pipeline import load_params
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=20)
     ap.add_argument("--stride", type=int, default=None, help="filter stride (default: depth.yaml)")
     ap.add_argument("--disp-max", type=int, default=None)
     ap.add_argument("--subsampling", default=None, choices=("on", "off"),
                     help="ELAS every 2nd pixel (default: depth.yaml)")
-    ap.add_argument("--interpolation", default=None, choices=("nearest", "bilinear"))
     a = ap.parse_args(argv)
-    try:
-        from mdr_slam.pipeline import load_params
-        params = load_params("depth")
-    except Exception:
-        params = {}
-    elas_p = dict(params.get("elas") or {})
+    _, shipped = split_known(load_params("depth"), *node_configs("depth"))  # not the node's keys
+    cfg = DepthConfig.from_dict(shipped)
+    elas = {}
     if a.disp_max is not None:
-        elas_p["disp_max"] = a.disp_max
+        elas["disp_max"] = a.disp_max
     if a.subsampling is not None:
-        elas_p["subsampling"] = a.subsampling == "on"
-    params["elas"] = elas_p
+        elas["subsampling"] = a.subsampling == "on"
+    cfg = cfg.replace(elas=elas)
     if a.stride is not None:
-        params["stride"] = a.stride
-    if a.interpolation:
-        params["interpolation"] = a.interpolation
+        cfg = cfg.replace(stride=a.stride)
     cam, frames, source = _frames(a.runs)
-    sd = StereoDepth(cam, params)
-    print("input: %s, %dx%d, %d frames; ELAS %s; filter stride %d, %s"
+    sd = StereoDepth(cam, cfg)
+    print("input: %s, %dx%d, %d frames; ELAS %s; filter stride %d"
           % (source, cam.size[0], cam.size[1], len(frames),
              {k: v for k, v in sd.matcher.params.items() if k in ("preset", "disp_max", "subsampling")},
-             sd.filter.p["stride"], sd.filter.p["interpolation"]))
+             sd.cfg.stride))
     # ELAS alone, several runs on one pair (plus one warm-up)
     matcher: ElasMatcher = sd.matcher
     left, right, _ = frames[0]

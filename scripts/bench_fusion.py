@@ -121,7 +121,7 @@ def main():
     ap.add_argument("--rss-points", type=int, default=30000, help="points per cloud in the RSS run")
     ap.add_argument("--rss-unique", type=int, default=600, help="distinct views in the RSS run")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="VoxelMap parameter, e.g. normal_method=knn (repeatable)")
+                    help="VoxelMap parameter, e.g. min_span=1 (repeatable)")
     ap.add_argument("--rss-only", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     import yaml
@@ -141,7 +141,7 @@ def main():
     # the maps take turns on every cloud, so the machine's load fluctuations hit all sizes alike
     maps = []
     for size in args.sizes:
-        m = VoxelMap(args.voxel, **args.kw)
+        m = VoxelMap(voxel_size=args.voxel, **args.kw)
         m.load(filler(int(size), args.voxel))
         for i in range(10):
             m.integrate(clouds[i], Ts[i], 0.05 * i)
@@ -178,7 +178,7 @@ def rss_run(args):
     P, N = room_surfaces(rng)
     print("\n2) RSS after %d clouds of the bounded room (20 Hz stamps, %d points each, %d distinct "
           "views replayed), fresh process" % (args.rss_clouds, args.rss_points, args.rss_unique))
-    m = VoxelMap(args.voxel, **args.kw)
+    m = VoxelMap(voxel_size=args.voxel, **args.kw)
     # the robot goes round the room again and again: clouds of the first `rss_unique` poses are
     # generated once and replayed (with new stamps), so the run measures the map, not the renderer
     n_u = min(args.rss_unique, args.rss_clouds)

@@ -98,7 +98,7 @@ def loop_scene(per_turn=90, turns=1.25):
 
 def report_loop(cam, frames, stamps, gt, period):
     for lc in (False, True):
-        s = System(cam, params={"loop_closing": lc}, threads=False)
+        s = System(cam, config={"loop_closing": lc}, threads=False)
         for t, (l, r) in zip(stamps, frames):
             s.track(float(t), l, r)
         s.shutdown()
@@ -139,7 +139,7 @@ def run(cam, frames, stamps, gt, period, threads, params, drop=False):
     whole process (every thread: mapping, loop closing, BLAS) per frame fed. ``drop`` (threads):
     a live stream to a node that keeps only the newest frame: frames that arrived while tracking
     was busy are skipped (counted), as pose_node does."""
-    s = System(cam, params=params, threads=threads)
+    s = System(cam, config=params, threads=threads)
     right, mapping = [], []
     s.extractor_right = _CpuTimed(s.extractor_right, right)   # runs in Frame's worker thread
     if not threads:
@@ -231,7 +231,7 @@ def main(argv=None):
     ap.add_argument("--blas-threads", type=int, default=1,
                     help="BLAS threads, as pose_node's blas_threads (0: the library's default)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="pose parameter override for the bag runs (repeatable), e.g. yield_max_ms=0")
+                    help="tracker parameter override for the bag runs (repeatable), e.g. n_features=1000")
     args = ap.parse_args(argv)
     import yaml
     overrides = {}

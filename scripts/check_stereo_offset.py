@@ -39,7 +39,7 @@ def main(argv=None) -> int:
     ap.add_argument("--max-frames", type=int, default=None)
     a = ap.parse_args(argv)
     from mdr_slam.pipeline import frames_from_bag, frames_from_dataset, load_params
-    from mdr_slam.pose import System
+    from mdr_slam.pose import System, TrackerConfig
     from mdr_slam.pose.stereo_offset import estimate_disparity_offset
     if a.kitti or a.euroc:
         cam, frames = frames_from_dataset("kitti" if a.kitti else "euroc", a.kitti or a.euroc,
@@ -50,7 +50,7 @@ def main(argv=None) -> int:
         ap.error("give a bag, --kitti or --euroc")
     if a.doffs is not None:
         cam = cam.with_doffs(a.doffs)
-    params = dict(load_params("pose", a.preset), loop_closing=False, backend="mdr")
+    params = TrackerConfig.pick(load_params("pose", a.preset)).replace(loop_closing=False, backend="mdr")
     system = System(cam, params, threads=False)
     gt = {}
     n = 0

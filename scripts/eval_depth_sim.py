@@ -40,7 +40,7 @@ def _parse_value(v: str):
     return {"true": True, "false": False}.get(v.lower(), v)
 
 
-def measurements(scene_name: str, frames: int, rate: float, params: dict, cache: str, scale: float,
+def measurements(scene_name: str, frames: int, rate: float, params, cache: str, scale: float,
                  duration: float = 30.0):
     """Per frame: (T, disparity, grey, gt_depth, surface); ELAS results cached on disk."""
     from mdr_slam.depth import StereoDepth
@@ -72,13 +72,13 @@ def measurements(scene_name: str, frames: int, rate: float, params: dict, cache:
     return cam, out
 
 
-def evaluate(cam, frames, params: dict, rate: float) -> dict:
+def evaluate(cam, frames, params, rate: float) -> dict:
     """Run the filter (or ELAS-only) over the frames; error/density per label."""
     from mdr_slam.depth import DepthFilter, StereoDepth
     f = DepthFilter(cam, params)
     measure = StereoDepth(cam, params).measurement
     w, h = cam.size
-    s = f.p["stride"]
+    s = f.cfg.stride
     errs = {k: [] for k in LABEL_NAMES}
     npts = {k: 0 for k in LABEL_NAMES}
     ngrid = {k: 0 for k in LABEL_NAMES}
@@ -181,7 +181,10 @@ def _row(scene, name, r):
 
 
 def main(argv=None):
-    from mdr_slam.depth import DEPTH_DEFAULTS
+    from mdr_slam.config import split_known
+    from mdr_slam.depth import DepthConfig
+    from mdr_slam.nodes import node_configs
+    from mdr_slam.pipeline import load_params
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", nargs="+", default=["office", "corridor"])
     ap.add_argument("--frames", type=int, default=80)
@@ -199,23 +202,25 @@ def main(argv=None):
                     help="also print the frame-to-frame correlation of ELAS's disparity error on "
                          "low-texture surfaces (is it noise a filter averages, or a bias?)")
     a = ap.parse_args(argv)
-    try:
-        from mdr_slam.pipeline import load_params
-        params = dict(DEPTH_DEFAULTS)
-        params.update(load_params("depth"))
-    except Exception:
-        params = dict(DEPTH_DEFAULTS)
+    _, shipped = split_known(load_params("depth"), *node_configs("depth"))  # not the node's keys
+    params = DepthConfig.from_dict(shipped)
+
+    def with_value(cfg, k, v):   # elas.disp_max=64: a field of the nested ElasConfig
+        head, _, sub = k.partition(".")
+        return cfg.replace(**({head: {sub: v}} if sub else {k: v}))
     for kv in a.set:
         k, v = kv.split("=", 1)
-        params[k] = _parse_value(v)
-    configs = [("ELAS-only", dict(params, temporal=False)), ("temporal", dict(params, temporal=True))]
+        params = with_value(params, k, _parse_value(v))
+    configs = [("ELAS-only", params.replace(temporal=False)),
+               ("temporal", params.replace(temporal=True))]
     if a.sweep:
         k, vals = a.sweep.split("=", 1)
         for v in vals.split(","):
-            configs.append(("temporal %s=%s" % (k, v), dict(params, temporal=True, **{k: _parse_value(v)})))
-    print("params: %s" % {k: params[k] for k in ("stride", "tau", "min_obs", "init_var_scale",
-                                                  "chi2_threshold", "sigma_d", "sigma_d_texture", "kf_max_frames",
-                                                  "kf_translation", "carry_tau", "fill_holes")})
+            configs.append(("temporal %s=%s" % (k, v),
+                            with_value(params.replace(temporal=True), k, _parse_value(v))))
+    print("params: %s" % {k: getattr(params, k) for k in (
+        "stride", "tau", "min_obs", "init_var_scale", "chi2_threshold", "sigma_d", "sigma_d_texture",
+        "kf_max_frames", "kf_translation", "carry_tau", "fill_holes")})
     head = ["scene    ", "%-34s" % "method"] + ["%-19s" % ("%s rmse >5cm dens" % k[:8])
                                                 for k in ["all"] + list(LABEL_NAMES.values())] + ["ms"]
     rows = []
@@ -229,7 +234,7 @@ def main(argv=None):
                           "%5.2f, rms %.2f px one frame, %.2f px mean of two" % ((scene, name) + r))
         for name, p in configs:
             r = evaluate(cam, frames, p, a.rate)
-            rows.append(_row(scene, name + (" (%d kf)" % r["keyframes"] if p["temporal"] else ""), r))
+            rows.append(_row(scene, name + (" (%d kf)" % r["keyframes"] if p.temporal else ""), r))
             print(rows[-1], flush=True)
     print()
     print("columns per label: depth RMSE (m), share |err| > 5 cm, density (published / grid pixels "

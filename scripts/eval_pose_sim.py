@@ -150,12 +150,26 @@ class LoopScorer:
         return False
 
 
+def apply_tuned(values: dict) -> None:
+    """``{"tracking.LOST_COAST_S": 0.0}``: the tracker's tuned constants (module of mdr_slam.pose
+    and name) set in this process, for experiments with them."""
+    import importlib
+    for key, v in values.items():
+        mod, _, name = key.partition(".")
+        m = importlib.import_module("mdr_slam.pose." + mod)
+        if not hasattr(m, name):
+            raise SystemExit("--set %s: mdr_slam.pose.%s has no constant %s" % (key, mod, name))
+        setattr(m, name, v)
+
+
 def track(bag: str, params: dict, scorer: LoopScorer = None) -> dict:
     import contextlib
     from mdr_slam.pipeline import frames_from_bag
-    from mdr_slam.pose import make_system
+    from mdr_slam.pose import TrackerConfig, make_system
     camera, frames = frames_from_bag(bag)
-    system = make_system(camera, params, threads=False)   # backend=orbslam3: ORB-SLAM3's tracker
+    apply_tuned({k: v for k, v in params.items() if "." in k})
+    # backend=orbslam3: ORB-SLAM3's tracker
+    system = make_system(camera, TrackerConfig.pick(params), threads=False)
     stamps, states, ms = [], [], []
     r = None
     with (scorer if scorer is not None else contextlib.nullcontext()):
@@ -357,7 +371,8 @@ def main(argv=None) -> int:
                     "gives when the loop itself is exactly measured)")
     ap.add_argument("--json", default=None)
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="override a pose parameter of config/pose.yaml (repeatable), e.g. ba_tol=0")
+                    help="override a tracker parameter of config/pose.yaml (repeatable), e.g. "
+                    "n_features=1000, or a tuned constant, e.g. local_mapping.BA_TOL=0")
     a = ap.parse_args(argv)
     names = expand_sequences(a.sequences)
     bad = [n for n in names if n.partition("@")[0] not in SEQUENCES or
@@ -371,14 +386,20 @@ def main(argv=None) -> int:
         if not sep:
             ap.error("--set wants KEY=VALUE: %r" % item)
         overrides[k.strip()] = yaml.safe_load(v)
+    from mdr_slam.pose import TrackerConfig
+    bad = [k for k in overrides if "." not in k and k not in TrackerConfig.keys()]
+    if bad:
+        ap.error("--set: no tracker parameter %s (known: %s)" % (bad, ", ".join(TrackerConfig.keys())))
     os.makedirs(a.out, exist_ok=True)
     results = []
     jobs = [(n, a.out, a.rate, a.scale, not a.no_compare, overrides, a.oracle_loops)
             for n in names]
     if a.jobs > 1 and len(jobs) > 1:
         import multiprocessing
-        pool = multiprocessing.get_context("spawn").Pool(min(a.jobs, len(jobs)))
-        done = pool.imap(_evaluate_job, jobs)
+        from concurrent.futures import ProcessPoolExecutor
+        # not multiprocessing.Pool: its daemonic workers may not start the renderer's processes
+        pool = ProcessPoolExecutor(min(a.jobs, len(jobs)), multiprocessing.get_context("spawn"))
+        done = pool.map(_evaluate_job, jobs)
     else:
         pool, done = None, map(_evaluate_job, jobs)
     try:
@@ -388,8 +409,7 @@ def main(argv=None) -> int:
             print(json.dumps({k: v for k, v in r["lc"].items() if k != "segments"}), flush=True)
     finally:
         if pool is not None:
-            pool.close()
-            pool.join()
+            pool.shutdown()
     print()
     print(table(results))
     print()

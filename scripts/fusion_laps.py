@@ -9,7 +9,7 @@ publishes ~13 of 20 Hz). Per lap: map size, confident points, accuracy RMSE / co
 the simulator's ``gt_map.ply``, integration time; at the end, what the points added after lap 1 are.
 
     python scripts/fusion_laps.py --laps 20                       # cache in output/fusion_laps/
-    python scripts/fusion_laps.py --laps 20 --set min_view_ratio=0  # ablation of one VoxelMap parameter
+    python scripts/fusion_laps.py --laps 20 --set min_span=1      # ablation of one VoxelMap parameter
 """
 from __future__ import annotations
 
@@ -33,11 +33,14 @@ def build_cache(bag, path, passes=6, keep=0.65, seed=0):
     """Depth clouds of ``passes`` passes over the bag through one depth filter (state carried over):
     pass 1 every frame, later passes a random ``keep`` share of the frames (the live depth node
     drops the rest), so every pass gives different clouds, as a live loop does."""
+    from mdr_slam.config import split_known
     from mdr_slam.depth import StereoDepth
+    from mdr_slam.nodes import node_configs
     from mdr_slam.pipeline import frames_from_bag, load_params
     cam, frames = frames_from_bag(bag, ground_truth=True)
     frames = [f for f in frames if f.T_map_cam_gt is not None]
-    sd = StereoDepth(cam, load_params("depth", "sample"))
+    _, dp = split_known(load_params("depth", "sample"), *node_configs("depth"))  # not the node's
+    sd = StereoDepth(cam, dp)
     dur = frames[-1].stamp - frames[0].stamp + 0.05
     P, I, S, T, L = [], [], [], [], []
     t0 = time.time()
@@ -94,14 +97,10 @@ def main():
     dur = float(d["duration"])
     gt = read_cloud(args.gt_map or os.path.join(os.path.dirname(args.bag), "gt_map.ply"))
     gt = np.stack([gt["x"], gt["y"], gt["z"]], 1)
-    fp = load_params("fusion", "sample")
-    for kv in args.set:
-        k, v = kv.split("=", 1)
-        fp[k] = yaml.safe_load(v)
-    m = VoxelMap.from_config(fp)
-    print("VoxelMap:", {k: getattr(m, k, None) for k in ("voxel_size", "min_confidence", "grace",
-                                                          "min_view_ratio", "view_window")},
-          "sets:", args.set)
+    sets = {k: yaml.safe_load(v) for k, v in (kv.split("=", 1) for kv in args.set)}
+    m = VoxelMap(load_params("fusion", "sample"), **sets)   # the node's own keys are skipped
+    print("VoxelMap:", {k: getattr(m, k) for k in ("voxel_size", "min_confidence", "grace",
+                                                    "min_span")}, "sets:", args.set)
     rng = np.random.default_rng(args.seed)
     print("%4s %8s %8s %8s %8s %9s %9s %8s %8s %8s %8s" % ("lap", "points", "conf>=3", "removed", "folded",
                                                        "rmse mm", "compl %", "acc %", "med ms", "cpu ms",
@@ -138,7 +137,6 @@ def main():
             break
     print("integration over all laps: median %.1f ms, p90 %.1f ms (wall)" % (
         np.median(ms_all), np.percentile(ms_all, 90)))
-    print("removed at the end of view_window (view ratio): %d" % getattr(m, "n_view_removed", 0))
     print("points re-keyed (mean left its voxel): %d, folded into their new voxel's point: %d" % (
         getattr(m, "n_rekeyed", 0), getattr(m, "n_cell_folds", 0)))
     # what are the points that came after lap 1?

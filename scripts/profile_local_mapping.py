@@ -3,7 +3,7 @@
 
     python scripts/profile_local_mapping.py [--bag output/sample/sequence.bag --frames 600]
     python scripts/profile_local_mapping.py --kitti [DIR]       # the KITTI 06 clip
-    python scripts/profile_local_mapping.py --set ba_tol=0 triangulation_bow_depth=1
+    python scripts/profile_local_mapping.py --set n_features=1000 local_ba=false
 
 Runs mdr_slam.pose.System(threads=False) so mapping runs synchronously after each frame; every
 step is timed with time.thread_time (CPU of the calling thread: far less inflated by a loaded
@@ -64,7 +64,7 @@ def main(argv=None) -> int:
     orig = Optimizer.local_bundle_adjustment
     Optimizer.local_bundle_adjustment = staticmethod(timed("local_ba", orig))
     try:
-        s = System(cam, params=params, threads=False)
+        s = System(cam, config=params, threads=False)
         lm = s.local_mapping
         for name in STEPS[:3] + STEPS[4:6]:
             setattr(lm, name, timed(name, getattr(lm, name)))

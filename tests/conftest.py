@@ -26,6 +26,13 @@ def shared_data(*parts) -> str:
     return p
 
 
+@pytest.fixture(autouse=True)
+def _own_ros_home(tmp_path, monkeypatch):
+    """Every test's nodes get their own ROS_HOME: their map autosaves (ROS_HOME/mdr_maps) never
+    touch the user's ~/.ros, and a node a test killed leaves nothing another test would resume."""
+    monkeypatch.setenv("ROS_HOME", str(tmp_path / "ros_home"))
+
+
 @pytest.fixture(scope="session")
 def root_dir():
     return ROOT
@@ -40,6 +47,17 @@ def sample_bag(tmp_path_factory):
     from mdr_slam.sim import generate
     d = str(tmp_path_factory.mktemp("sample"))
     generate(d, scene="office", duration=30.0)
+    return d
+
+
+@pytest.fixture(scope="session")
+def small_sim(tmp_path_factory):
+    """The office loop at half resolution (376x240) and 10 Hz, of which the runs use the first 60
+    frames (6 s: a shorter sequence would make the one-lap loop unrealistically fast)."""
+    from mdr_slam.sim import generate
+    d = str(tmp_path_factory.mktemp("sim_office"))
+    generate(d, scene="office", duration=30.0, seed=1, rate=10.0, scale=0.5, workers=2,
+             map_cell=0.02)
     return d
 
 

@@ -22,12 +22,25 @@ import os
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
-from typing import Callable, Dict, Iterable, Iterator, List, Optional
+from typing import Callable, Dict, Iterator, List, Optional
 
 import numpy as np
+import yaml
+from scipy.spatial import cKDTree
 
-from .camera import CalibrationError, StereoCamera
-from .geometry import is_valid_T
+from . import bagio
+from .calib import load_stereo_calibration
+from .camera import CalibrationError, StereoCamera, images_are_rectified
+from .config import split_known
+from .depth import DepthConfig, StereoDepth
+from .fusion import VoxelMap, VoxelMapConfig
+from .fusion.map_io import load_dense_map, save_dense_map
+from .geometry import is_valid_T, parse_transform
+from .io import Trajectory, atomic_write, datasets, write_tum
+from .io.map_dir import DENSE_MAP_FILE, map_files
+from .nodes import node_configs
+from .pose import TrackerConfig, make_system
+from .pose.map_io import PoseMapError, load_pose_map, save_pose_map
 
 __all__ = ["PipelineConfig", "Pipeline", "StageTimer", "config_dir", "load_params",
            "frames_from_bag", "frames_from_dataset", "InputFrame"]
@@ -45,7 +58,6 @@ def config_dir() -> str:
 def load_params(name: str, preset: Optional[str] = None) -> dict:
     """A node's parameter file ``config/<name>.yaml``, overlaid with ``config/<preset>/<name>.yaml``
     when a dataset preset (sample, euroc, kitti) has one: the same files the launch file loads."""
-    import yaml
     out: dict = {}
     paths = [os.path.join(config_dir(), name + ".yaml")]
     if preset:
@@ -82,6 +94,10 @@ class StageTimer:
         return out
 
 
+LOADED_DISTANCE_SAMPLES = 2000   # points per cloud measured against a loaded map ...
+LOADED_SURFACE_RADIUS = 0.25     # ... those with a loaded point this close (m) saw a saved surface
+
+
 @dataclass
 class InputFrame:
     """One stereo pair as the pipeline takes it (raw or rectified, grey)."""
@@ -102,35 +118,52 @@ class PipelineConfig:
     pose_params: dict = field(default_factory=dict)    # overrides of config/pose.yaml
     depth_params: dict = field(default_factory=dict)   # overrides of config/depth.yaml
     fusion_params: dict = field(default_factory=dict)  # overrides of config/fusion.yaml
+    map_folder: str = ""                  # a saved map folder to start from (mdr_slam.io.map_dir)
+    localization: bool = False            # with map_folder: track against it only, no new keyframes
 
 
 class Pipeline:
     """Pose -> depth -> fusion for one frame at a time (see the module docstring)."""
 
     def __init__(self, camera: StereoCamera, config: Optional[PipelineConfig] = None):
-        from .depth import StereoDepth
-        from .fusion import VoxelMap
         self.camera = camera
         self.config = cfg = config or PipelineConfig()
         if cfg.pose_source not in ("orb", "groundtruth"):
             raise ValueError("pose source must be 'orb' or 'groundtruth', got %r" % cfg.pose_source)
-        dp = load_params("depth", cfg.preset)
-        dp.update(cfg.depth_params)
-        dp["temporal"] = bool(cfg.temporal)
-        fp = load_params("fusion", cfg.preset)
-        fp.update(cfg.fusion_params)
+        # the YAML files hold the nodes' own parameters too: only the core classes' are used here
+        _, dp = split_known(load_params("depth", cfg.preset), *node_configs("depth"))
+        dov = {}
+        for k, v in cfg.depth_params.items():   # "elas.disp_max" (mdr run --set): a nested field
+            head, _, sub = k.partition(".")
+            if sub:
+                dov[head] = dict(dov.get(head) or {}, **{sub: v})
+            else:
+                dov[k] = v
+        _, dov = split_known(dov, *node_configs("depth"))
+        dov["temporal"] = bool(cfg.temporal)
+        self.depth = StereoDepth(camera, DepthConfig.from_dict(dp).replace(**dov))
+        _, fp = split_known(load_params("fusion", cfg.preset), *node_configs("fusion"))
+        _, fov = split_known(cfg.fusion_params, *node_configs("fusion"))
+        fp.update(fov)
         fp["confidence"] = bool(cfg.confidence)
-        self.depth = StereoDepth(camera, dp)
-        self.map = VoxelMap(fp)
+        self.map = VoxelMap(VoxelMapConfig.from_dict(fp))
         self.tracker = None
         if cfg.pose_source == "orb":
-            from .pose import make_system
             pp = load_params("pose", cfg.preset)
             pp.update(cfg.pose_params)
+            # pose.yaml also holds the pose node's parameters; the node's config checks those
+            tracker = TrackerConfig.pick(pp)
             # map is base_link where tracking starts, as the pose node publishes (REP-105)
-            from .geometry import parse_transform
-            self.tracker = make_system(camera, pp, threads=False,
+            self.tracker = make_system(camera, tracker, threads=False,
                                        T_map_cam0=parse_transform(pp.get("base_to_camera", "")))
+        self.map_loaded = False
+        self.map_load_error = ""
+        self.relocalized_at = None            # stamp of the first frame relocalized in the loaded map
+        self._loaded_tree = None              # the loaded dense map's points (distances of new clouds)
+        self.loaded_distances: List[np.ndarray] = []   # new points' distances to the loaded map
+        self.loaded_seen = [0, 0]             # new points near a loaded surface, all new points
+        if cfg.map_folder:
+            self._load_map_folder(cfg.map_folder, cfg.localization)
         self.timer = StageTimer()
         self.counts = OrderedDict([("frames_in", 0), ("frames_posed", 0), ("frames_integrated", 0),
                                    ("frames_lost", 0), ("points_published", 0),
@@ -139,6 +172,24 @@ class Pipeline:
         self._late_ref = -1                   # newest keyframe of a backend without references
         self.poses: List[tuple] = []          # (stamp, T_map_cam) of every posed frame
         self.states: List[tuple] = []         # (stamp, state)
+
+    def _load_map_folder(self, folder: str, localization: bool) -> None:
+        """Both maps of a saved folder; a bad one is reported and the run starts empty."""
+        try:
+            load_dense_map(self.map, folder)
+            if self.tracker is not None:
+                load_pose_map(self.tracker, map_files(folder)["pose"])
+                self.tracker.localization = bool(localization)
+        except (ValueError, PoseMapError, IOError, OSError) as e:
+            self.map_load_error = str(e)
+            self.map.reset()
+            if self.tracker is not None and getattr(self.tracker, "map_loaded", False):
+                self.tracker.reset()
+            return
+        self.map_loaded = True
+        c = self.map.to_cloud()
+        if len(c["x"]):
+            self._loaded_tree = cKDTree(np.stack([c["x"], c["y"], c["z"]], 1))
 
     # ------------------------------------------------------------------ one frame
     def process(self, frame: InputFrame) -> dict:
@@ -161,6 +212,14 @@ class Pipeline:
             self.timer.add("depth." + stage, ms)
         n = len(out.points)
         rec["points"] = n
+        if n and self._loaded_tree is not None:
+            P = out.points[:: max(1, n // LOADED_DISTANCE_SAMPLES)]
+            d, _ = self._loaded_tree.query(P @ T[:3, :3].T + T[:3, 3],
+                                           distance_upper_bound=LOADED_SURFACE_RADIUS)
+            near = d[np.isfinite(d)]
+            self.loaded_distances.append(near)
+            self.loaded_seen[0] += len(near)
+            self.loaded_seen[1] += len(d)
         if n:
             self.counts["points_published"] += n
             # Points are anchored to the pose node's reference keyframe, so a later loop closure or
@@ -180,6 +239,8 @@ class Pipeline:
                 return None, "NO_GROUND_TRUTH", None
             return T, "OK", None
         res = self.timer.time("pose", self.tracker.track, frame.stamp, left, right)
+        if res.state == "RELOCALIZED" and self.map_loaded and self.relocalized_at is None:
+            self.relocalized_at = float(frame.stamp)
         if res.corrections:
             reason, _, kfs = res.corrections
             key = "loop_closures" if reason == "loop_closure" else "local_ba_corrections"
@@ -203,7 +264,6 @@ class Pipeline:
     # ------------------------------------------------------------------ outputs
     def trajectory(self):
         """Estimated trajectory: the tracker's (loop-corrected) one, or the ground truth used."""
-        from .io import Trajectory
         if self.tracker is not None:
             return self.tracker.trajectory()
         if not self.poses:
@@ -211,12 +271,17 @@ class Pipeline:
         return Trajectory.from_matrices([s for s, _ in self.poses], [T for _, T in self.poses])
 
     def finish(self, out_dir: str, extra: Optional[dict] = None) -> dict:
-        """Write ``map.ply``, ``trajectory.tum`` and ``summary.json`` into ``out_dir``."""
-        from .io import atomic_write, write_tum
+        """Write the map folder ``map/`` (dense and sparse map), ``map.ply`` (a link to the dense
+        map), ``trajectory.tum`` and ``summary.json`` into ``out_dir``."""
         os.makedirs(out_dir, exist_ok=True)
+        folder = os.path.join(out_dir, "map")
         if self.tracker is not None:
             self.tracker.shutdown()
-        n_map = self.map.save(os.path.join(out_dir, "map.ply"))
+            if self.tracker.map.keyframes and hasattr(self.tracker, "n_keyframes_created"):
+                os.makedirs(folder, exist_ok=True)
+                save_pose_map(self.tracker, map_files(folder)["pose"])
+        n_map = save_dense_map(self.map, folder)
+        _link(os.path.join("map", DENSE_MAP_FILE), os.path.join(out_dir, "map.ply"))
         traj = self.trajectory()
         write_tum(os.path.join(out_dir, "trajectory.tum"), traj)
         summary = OrderedDict()
@@ -228,12 +293,33 @@ class Pipeline:
         summary.update(self.counts)
         summary["map_points"] = int(n_map if n_map is not None else len(self.map))
         summary["trajectory_poses"] = len(traj)
+        summary["map_folder"] = folder
+        summary["map_loaded"] = self.map_loaded
+        if self.config.map_folder:
+            summary["map_loaded_from"] = self.config.map_folder
+            summary["map_load_error"] = self.map_load_error
+            summary["localization"] = bool(self.config.localization)
+        summary["keyframes_created"] = int(getattr(self.tracker, "n_keyframes_created", 0))
+        summary["relocalized_at"] = self.relocalized_at
+        if self.loaded_seen[1]:   # new clouds against the loaded dense map
+            d = np.concatenate(self.loaded_distances)
+            summary["clouds_to_loaded_map_median_m"] = float(np.median(d)) if len(d) else None
+            summary["clouds_on_loaded_surfaces"] = self.loaded_seen[0] / float(self.loaded_seen[1])
         summary["timing"] = self.timer.summary()
         if extra:
             summary.update(extra)
         atomic_write(os.path.join(out_dir, "summary.json"), json.dumps(summary, indent=2) + "\n",
                      mode="w")
         return summary
+
+
+def _link(target: str, path: str) -> None:
+    """``path`` -> ``target`` (relative) as a symbolic link, replacing an older file."""
+    tmp = path + ".tmp-link"
+    if os.path.lexists(tmp):
+        os.unlink(tmp)
+    os.symlink(target, tmp)
+    os.replace(tmp, path)
 
 
 # ---------------------------------------------------------------------- frame sources
@@ -252,15 +338,12 @@ def frames_from_bag(path: str, topics: Optional[dict] = None, max_frames: Option
     bag's ground-truth pose to each frame (``--pose-source groundtruth``); without it frames
     carry none.
     """
-    from . import bagio
-    from .camera import images_are_rectified
     topics = dict(bagio.DEFAULT_TOPICS, **(topics or {}))
     if not isinstance(rectified, bool) and \
             str(rectified).strip().lower() not in ("auto", "true", "false"):   # before reading
         raise ValueError("rectified must be 'auto', 'true' or 'false', not %r" % (rectified,))
     camera = None
     if calib:
-        from .calib import load_stereo_calibration
         camera = load_stereo_calibration(calib)
     it = bagio.read_stereo_frames(path, topics=topics, max_frames=max_frames,
                                   with_ground_truth=ground_truth, on_skip=on_skip,
@@ -290,7 +373,6 @@ def frames_from_bag(path: str, topics: Optional[dict] = None, max_frames: Option
 def frames_from_dataset(kind: str, path: str, max_frames: Optional[int] = None):
     """(StereoCamera, iterator of InputFrame) for an EuRoC (ASL) or KITTI odometry folder, with
     the folder's ground truth (interpolated to the image stamps) when it has one."""
-    from .io import datasets
     seq = datasets.load_euroc(path) if kind == "euroc" else datasets.load_kitti(path)
     gt = dict(seq.ground_truth_at())
 

@@ -17,7 +17,7 @@ from ..eval.depth import (MIDDLEBURY, depth_error_metrics, depth_metrics, load_m
                           read_disparity)
 from ..eval.map import map_metrics
 from ..eval.plot import plot_ate, plot_map_errors
-from ..eval.trajectory import ate, read_for_eval, rpe
+from ..eval.trajectory import alignment_matrix, ate, read_for_eval, rpe, transform_trajectory
 from ..io.atomic import atomic_write
 from ..io.pointcloud import cloud_xyz, read_cloud
 
@@ -44,6 +44,10 @@ def add_parser(subparsers, name, help_text):
         q.set_defaults(func=run_ate if metric == "ate" else run_rpe)
         if metric == "ate":
             q.add_argument("--align", choices=["se3", "sim3", "scale", "none"], default="se3")
+            q.add_argument("--align-as", metavar="EST0", default=None,
+                           help="align with the SE(3) transform that aligns EST0 (an earlier run "
+                                "whose map this one was localized in) to the ground truth: the "
+                                "estimate is scored in that run's map frame")
             q.add_argument("--n-to-align", type=int, default=-1,
                            help="align on the first N poses only (default all)")
             q.add_argument("--plot", default=None, help="save the Fig. 6 style plot (PNG/PDF)")
@@ -107,7 +111,13 @@ def _read_pair(args):
 def run_ate(args):
     try:
         est, gt = _read_pair(args)
-        res = ate(est, gt, args.align, args.max_diff, args.offset, args.n_to_align)
+        align_mode = args.align
+        if args.align_as:
+            first = read_for_eval(args.align_as, args.est_format or args.format, args.est_times)
+            est = transform_trajectory(est, alignment_matrix(
+                ate(first, gt, "se3", args.max_diff, args.offset).alignment))
+            align_mode = "none"
+        res = ate(est, gt, align_mode, args.max_diff, args.offset, args.n_to_align)
     except (ValueError, OSError) as e:
         print("mdr eval ate: %s" % e, file=sys.stderr)
         return 1

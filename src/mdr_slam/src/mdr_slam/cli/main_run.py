@@ -14,17 +14,29 @@ tracked by the ORB tracker (``--pose-source orb``, the default, as on a robot);
 ``--pose-source groundtruth`` places them with the bag's ground-truth poses
 (``--ground-truth-pose``) or the dataset's ground truth instead.
 
-Writes ``DIR/map.ply`` (the fused global map), ``DIR/trajectory.tum`` (left camera optical frame in
-``map``, one line per posed frame) and ``DIR/summary.json`` (frame counts, per-stage median and p90
-milliseconds). The four runs of the paper's ablation (Table 2) differ only in --temporal and
+Writes the map folder ``DIR/map/`` (the fused dense map and the tracker's sparse map, for
+``--map`` and the nodes' ``load_map``), ``DIR/map.ply`` (a link to the dense map),
+``DIR/trajectory.tum`` (left camera optical frame in ``map``, one line per posed frame) and
+``DIR/summary.json`` (frame counts, keyframes created, the first relocalization in a loaded map,
+per-stage median and p90 milliseconds).
+
+    mdr run BAG --out A                                    # map once
+    mdr run BAG --out B --map A/map --localization --start 6   # then localize in it The four runs of the paper's ablation (Table 2) differ only in --temporal and
 --confidence.
 """
 from __future__ import annotations
 
 import argparse
 import itertools
+import os
 import sys
 import time
+
+import yaml
+
+from ..bagio import DEFAULT_TOPICS, IMAGE_TRANSPORTS
+from ..config import ConfigError
+from ..nodes import node_configs, node_defaults
 
 
 def _onoff(text: str) -> bool:
@@ -56,6 +68,13 @@ def add_parser(sub, name, help_text):
     p.add_argument("--preset", choices=("sample", "euroc", "kitti"), default=None,
                    help="dataset preset of config/<preset>/*.yaml (default: from the input)")
     p.add_argument("--max-frames", type=int, default=None)
+    p.add_argument("--start", type=float, default=0.0, metavar="S",
+                   help="skip the first S seconds of the input (as rosbag play --start)")
+    p.add_argument("--map", metavar="FOLDER", default="",
+                   help="start from a saved map folder (e.g. an earlier run's DIR/map): the "
+                        "tracker relocalizes in it and the poses are in its map frame")
+    p.add_argument("--localization", action="store_true",
+                   help="with --map: track against the saved map only (no new keyframes)")
     p.add_argument("--blas-threads", type=int, default=1,
                    help="BLAS threads (0: the library's default). One, as in pose_node: OpenBLAS's "
                         "second thread mostly spins on the small BA/PnP products (300 sample "
@@ -70,7 +89,6 @@ def add_parser(sub, name, help_text):
 def add_bag_input_arguments(p) -> None:
     """The bag's topics and how to read them, named as mdr.launch's arguments (also used by
     ``mdr bench`` and ``mdr demo``, which pass them on)."""
-    from ..bagio import DEFAULT_TOPICS, IMAGE_TRANSPORTS
     g = p.add_argument_group("bag input (as mdr.launch's arguments)")
     for name, key in (("left-image", "left_image"), ("right-image", "right_image"),
                       ("left-info", "left_info"), ("right-info", "right_info")):
@@ -108,25 +126,32 @@ def bag_input_argv(args) -> list:
 
 
 def _overrides(items):
-    import yaml
     out = {"pose": {}, "depth": {}, "fusion": {}}
     for it in items:
         key, sep, val = it.partition("=")
         node, dot, k = key.partition(".")
         if not sep or not dot or node not in out:
             raise SystemExit("--set wants NODE.KEY=VALUE with NODE in pose, depth, fusion: %r" % it)
-        from ..nodes import node_defaults
-        if k.split(".")[0] not in node_defaults(node):
+        top, _, sub = k.partition(".")
+        if top not in node_defaults(node):
             raise SystemExit("--set: the %s node has no parameter %r (see config/%s.yaml)"
                              % (node, k, node))
-        out[node][k] = yaml.safe_load(val)
+        v = yaml.safe_load(val)
+        for c in node_configs(node):
+            if top in c.keys():
+                try:
+                    c.from_dict({top: {sub: v} if sub else v})
+                except ConfigError as e:
+                    raise SystemExit("--set %s: %s" % (it, e))
+        out[node][k] = v
     return out
 
 
 def run(args) -> int:
+    # the pipeline (pose, depth, fusion) when the command runs: `mdr --help` imports this module
     from ..pipeline import Pipeline, PipelineConfig, frames_from_bag, frames_from_dataset
     if getattr(args, "blas_threads", 0) and args.blas_threads > 0:
-        try:
+        try:   # threadpoolctl is optional
             from threadpoolctl import threadpool_limits
             threadpool_limits(args.blas_threads, user_api="blas")
         except ImportError:
@@ -138,25 +163,40 @@ def run(args) -> int:
         skipped["n"] += 1
         if len(skipped["examples"]) < 5:
             skipped["examples"].append(reason)
+    # --max-frames counts the frames after --start
+    max_frames = None if args.start > 0 else args.max_frames
     try:
         if args.bag:
             camera, frames = frames_from_bag(
-                args.bag, topics=bag_topics(args), max_frames=args.max_frames, calib=args.calib,
+                args.bag, topics=bag_topics(args), max_frames=max_frames, calib=args.calib,
                 on_skip=on_skip, ground_truth=args.pose_source == "groundtruth",
                 image_transport=args.image_transport, sync_tolerance=args.sync_tolerance,
                 rectified=args.rectified)
             preset = args.preset
         else:
             kind = "euroc" if args.euroc else "kitti"
-            camera, frames = frames_from_dataset(kind, args.euroc or args.kitti, args.max_frames)
+            camera, frames = frames_from_dataset(kind, args.euroc or args.kitti, max_frames)
             preset = args.preset or kind
         frames = iter(frames)
         first = next(frames, None)
     except Exception as e:  # missing file, not a bag (ROSBagException), no calibration...
         print("mdr run: cannot read the input: %s: %s" % (type(e).__name__, e), file=sys.stderr)
         return 1
+    if args.start > 0 and first is not None:
+        t_skip = first.stamp + args.start
+        frames = itertools.dropwhile(lambda f: f.stamp < t_skip, itertools.chain([first], frames))
+        if args.max_frames:
+            frames = itertools.islice(frames, args.max_frames)
+        first = next(frames, None)
     if first is None:
-        print("mdr run: no frames in the input", file=sys.stderr)
+        print("mdr run: no frames in the input%s" % (" after --start" if args.start else ""),
+              file=sys.stderr)
+        return 1
+    if args.localization and not args.map:
+        print("mdr run: --localization needs --map FOLDER", file=sys.stderr)
+        return 1
+    if args.map and not os.path.isdir(args.map):
+        print("mdr run: --map %s is not a folder" % args.map, file=sys.stderr)
         return 1
     if args.pose_source == "groundtruth" and first.T_map_cam_gt is None:
         print("mdr run: warning: no ground-truth pose at the first frame (%s); frames without "
@@ -164,8 +204,12 @@ def run(args) -> int:
                                       else "the dataset's ground truth"), file=sys.stderr)
     cfg = PipelineConfig(pose_source=args.pose_source, temporal=args.temporal,
                          confidence=args.confidence, preset=preset, pose_params=ov["pose"],
-                         depth_params=ov["depth"], fusion_params=ov["fusion"])
+                         depth_params=ov["depth"], fusion_params=ov["fusion"],
+                         map_folder=args.map, localization=args.localization)
     pipe = Pipeline(camera, cfg)
+    if args.map and not pipe.map_loaded:
+        print("mdr run: could not load the map %s: %s (starting empty)"
+              % (args.map, pipe.map_load_error), file=sys.stderr)
     t0 = time.perf_counter()
     n = 0
     for f in itertools.chain([first], frames):

@@ -9,12 +9,12 @@ own. In inverse depth a plane is exactly linear in the normalized image coordina
 so a plane is a weighted linear least-squares fit of rho = 1/Z on (x, y, 1).
 
 :func:`plane_fill` finds planes by sequential RANSAC (hypotheses from weighted least-squares fits
-of random image patches, scored on a sample, refined on all) on the SUPPORT pixels -- by default
-the converged ones (``densify_support: converged``; ``all`` also uses the non-converged
-hypotheses, but those carry ELAS's interpolation errors, which are planar in inverse depth too,
-and were filled with them: office map RMSE 0.60 m). A plane's region is the connected image
-regions of its inliers among all hypotheses (own estimate within chi-square of the plane), closed,
-with small enclosed holes, holding enough support and mostly inliers, and within
+of random image patches, scored on a sample, refined on all) on the SUPPORT pixels, the converged
+ones (the non-converged hypotheses carry ELAS's interpolation errors, which are planar in inverse
+depth too: planes fitted on them filled those errors, office map RMSE 0.60 m). A plane's region
+is the connected image regions of its inliers among all hypotheses (own estimate within
+chi-square of the plane), closed, with small enclosed holes, holding enough support and mostly
+inliers, and within
 ``densify_max_dist`` cells of the support. Its pixels get the plane's inverse depth, except where
 the pixel's own estimate contradicts the plane (a box in front of the wall, a depth step), where
 the ray grazes the plane, or where another plane fits the neighbourhood better (corners). The
@@ -27,37 +27,13 @@ Vectorized: one loop iteration per plane (a handful per keyframe), never per pix
 """
 from __future__ import annotations
 
-from typing import Dict, Optional, Tuple
+from typing import Dict, Mapping, Optional, Tuple, Union
 
 import numpy as np
 
-__all__ = ["DENSIFY_DEFAULTS", "plane_fill"]
+from .config import DepthConfig
 
-DENSIFY_DEFAULTS: Dict[str, object] = {
-    "densify": "plane",           # "plane" | "off"
-    "densify_support": "converged",  # planes fitted on: converged pixels | all candidates
-    "densify_min_support": 60,    # support pixels (inliers) a plane needs
-    "densify_max_dist": 40,       # fill at most this many grid cells away from the support
-    "densify_memory": 30,         # planes remembered (map frame) to fill later keyframes; 0 = off
-    "densify_prior_margin": 0.5,  # m; a remembered plane fills only inside the map box of the
-                                  # region it filled with support, grown by this
-    "densify_max_incidence_deg": 75.0,  # no fill where the ray meets the plane more obliquely
-    "densify_max_depth": 0.0,     # m; fill only nearer than this (0 = max_depth)
-    "densify_every": 5,           # re-fit the keyframe's planes every this many frames
-    "densify_min_obs": 3,         # candidate hypotheses: at least this many observations ...
-    "densify_max_rel": 0.15,      # ... and sigma_rho / rho <= this
-    "densify_chi2": 6.63,         # inlier: (rho - plane)^2 <= chi2 * var (own variance) ...
-    "densify_max_dev": 0.04,      # ... and |rho - plane| <= this * rho (relative)
-    "densify_min_pixels": 300,    # grid pixels of inliers in one connected region to fill it
-    "densify_max_planes": 10,     # planes per keyframe
-    "densify_hypotheses": 96,     # RANSAC hypotheses per plane
-    "densify_patch": 9,           # hypothesis patch half size (grid cells)
-    "densify_close": 2,           # morphological closing (grid cells) of a plane's inlier mask
-    "densify_min_density": 0.6,   # share of a region's cells that must be inliers
-    "densify_max_hole": 400,      # and fill enclosed holes up to this many grid cells
-    "densify_max_rchi2": 3.0,     # reject a plane whose inliers scatter more than their variance
-    "densify_var_floor": 0.01,    # relative sigma floor of a filled depth (sigma_Z/Z)
-}
+__all__ = ["plane_fill"]
 
 
 def _lsq(x, y, r, w):
@@ -80,7 +56,8 @@ def _inliers(theta, x, y, r, var, chi2, max_dev):
 
 
 def plane_fill(rx: np.ndarray, ry: np.ndarray, rho: np.ndarray, var: np.ndarray,
-               n_obs: np.ndarray, converged: np.ndarray, params: Optional[dict] = None,
+               n_obs: np.ndarray, converged: np.ndarray,
+               config: Union[None, DepthConfig, Mapping] = None,
                rng: Optional[np.random.Generator] = None, priors=()
                ) -> Tuple[np.ndarray, np.ndarray, np.ndarray, Dict[str, float]]:
     """Planar fill of a grid of inverse-depth hypotheses (all arrays of the grid's 2-D shape).
@@ -89,7 +66,8 @@ def plane_fill(rx: np.ndarray, ry: np.ndarray, rho: np.ndarray, var: np.ndarray,
     its variance (NaN = no hypothesis); ``n_obs``: observations; ``converged``: pixels already
     published on their own (they support the fit and are never overwritten).
     Returns ``(fill, rho_fill, var_fill, stats)``: the mask of filled (non-converged) pixels with
-    their inverse depth and inverse-depth variance (NaN elsewhere).
+    their inverse depth and inverse-depth variance (NaN elsewhere). ``config``: a
+    :class:`~mdr_slam.depth.config.DepthConfig` (its ``densify_*`` fields) or a mapping of fields.
     ``priors``: planes (a, b, c) known from earlier keyframes (in this grid's parametrization);
     each fills the regions where this keyframe's own estimates agree with it (no support
     needed); an item may also be ``(theta, allowed)`` with a grid mask of where it may fill.
@@ -97,8 +75,7 @@ def plane_fill(rx: np.ndarray, ry: np.ndarray, rho: np.ndarray, var: np.ndarray,
     ``stats["new_regions"]`` the flat grid indices each of them filled or was supported by.
     """
     import cv2
-    p = dict(DENSIFY_DEFAULTS)
-    p.update(params or {})
+    p = DepthConfig.of(config)
     rng = rng if rng is not None else np.random.default_rng(0)
     gh, gw = rho.shape
     n = gh * gw
@@ -108,21 +85,21 @@ def plane_fill(rx: np.ndarray, ry: np.ndarray, rho: np.ndarray, var: np.ndarray,
     conv = converged.ravel().astype(bool)
     with np.errstate(invalid="ignore"):
         have = np.isfinite(R) & np.isfinite(V) & (R > 0) & (V > 0)
-        own = have & (n_obs.ravel() >= p["densify_min_obs"])
-        cand = (own & (np.sqrt(V) <= p["densify_max_rel"] * R)) | (have & conv)
-    chi2, max_dev = float(p["densify_chi2"]), float(p["densify_max_dev"])
-    min_pix = int(p["densify_min_pixels"])
-    K, h = int(p["densify_hypotheses"]), int(p["densify_patch"])
+        own = have & (n_obs.ravel() >= p.densify_min_obs)
+        cand = (own & (np.sqrt(V) <= p.densify_max_rel * R)) | (have & conv)
+    chi2, max_dev = float(p.densify_chi2), float(p.densify_max_dev)
+    min_pix = int(p.densify_min_pixels)
+    K, h = int(p.densify_hypotheses), int(p.densify_patch)
     # patch offsets (every 2nd cell of a (2h+1)^2 window)
     o = np.arange(-h, h + 1, 2)
     odr, odc = [a.ravel() for a in np.meshgrid(o, o, indexing="ij")]
-    src = (have & conv) if p["densify_support"] == "converged" else cand
-    min_sup = int(p["densify_min_support"]) if p["densify_support"] == "converged" else min_pix
+    src = have & conv
+    min_sup = p.densify_min_support
     remaining = src.copy()
     label = np.full(n, -1, np.int32)
     fill_rho = np.full(n, np.nan)
     fill_var = np.full(n, np.nan)
-    kclose = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * int(p["densify_close"]) + 1,) * 2)
+    kclose = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * int(p.densify_close) + 1,) * 2)
     stats = {"planes": 0, "candidates": int(cand.sum())}
     planes = []
 
@@ -148,19 +125,19 @@ def plane_fill(rx: np.ndarray, ry: np.ndarray, rho: np.ndarray, var: np.ndarray,
         n_in = np.bincount(lab.ravel()[inl], minlength=ncomp)
         n_sup = np.bincount(lab.ravel()[inl[src[inl]]], minlength=ncomp)
         big = np.flatnonzero((n_in[1:] >= min_pix) & (n_sup[1:] >= need_sup) &
-                             (n_in[1:] >= p["densify_min_density"] * st[1:, cv2.CC_STAT_AREA])) + 1
+                             (n_in[1:] >= p.densify_min_density * st[1:, cv2.CC_STAT_AREA])) + 1
         # pixels of the kept regions that are inliers: the plane's support
         keep_lab = np.zeros(ncomp, bool)
         keep_lab[big] = True
         region = keep_lab[lab.ravel()]
-        if p["densify_max_hole"] > 0 and region.any():
+        if p.densify_max_hole > 0 and region.any():
             # enclosed holes (not touching the border) of the region, up to densify_max_hole
             nh, hl, hs, _ = cv2.connectedComponentsWithStats((~region).reshape(gh, gw).astype(
                 np.uint8), connectivity=4)
             x0, y0 = hs[:, cv2.CC_STAT_LEFT], hs[:, cv2.CC_STAT_TOP]
             inner = (x0 > 0) & (y0 > 0) & (x0 + hs[:, cv2.CC_STAT_WIDTH] < gw) & \
                 (y0 + hs[:, cv2.CC_STAT_HEIGHT] < gh) & \
-                (hs[:, cv2.CC_STAT_AREA] <= p["densify_max_hole"])
+                (hs[:, cv2.CC_STAT_AREA] <= p.densify_max_hole)
             inner[0] = False
             region |= inner[hl.ravel()]
         return region, inl
@@ -184,7 +161,7 @@ def plane_fill(rx: np.ndarray, ry: np.ndarray, rho: np.ndarray, var: np.ndarray,
     stats["new_planes"] = []
     stats["new_regions"] = []
     fails = 0
-    for j in range(int(p["densify_max_planes"])):
+    for j in range(int(p.densify_max_planes)):
         idx = np.flatnonzero(remaining)
         if len(idx) < min_sup or fails >= 2:
             break
@@ -219,7 +196,7 @@ def plane_fill(rx: np.ndarray, ry: np.ndarray, rho: np.ndarray, var: np.ndarray,
         th, ATA = _lsq(X[support], Y[support], R[support], 1.0 / V[support])
         e = R[support] - (th[0] * X[support] + th[1] * Y[support] + th[2])
         rchi2 = float(np.mean(e * e / V[support]))
-        if not np.isfinite(rchi2) or rchi2 > p["densify_max_rchi2"]:
+        if not np.isfinite(rchi2) or rchi2 > p.densify_max_rchi2:
             fails += 1
             continue
         fails = 0
@@ -227,11 +204,11 @@ def plane_fill(rx: np.ndarray, ry: np.ndarray, rho: np.ndarray, var: np.ndarray,
         # contradicts the plane and pixels another plane already took
         pred, contra = consistent(th)
         take = region & ~contra & (pred > 0)
-        if p["densify_max_dist"] > 0:
+        if p.densify_max_dist > 0:
             sm = np.ones(n, np.uint8)
             sm[support] = 0
             dist = cv2.distanceTransform(sm.reshape(gh, gw), cv2.DIST_L2, 3).ravel()
-            take &= dist <= p["densify_max_dist"]
+            take &= dist <= p.densify_max_dist
         planes.append((th, np.linalg.inv(ATA) * max(1.0, rchi2), take))
         remaining &= ~take
         stats["planes"] += 1
@@ -241,7 +218,7 @@ def plane_fill(rx: np.ndarray, ry: np.ndarray, rho: np.ndarray, var: np.ndarray,
         # each pixel goes to the plane that its neighbourhood's own estimates fit best: the
         # normalized squared residual averaged over a window (one noisy pixel does not decide)
         cost = np.full((len(planes), n), np.inf, np.float32)
-        kw = 2 * int(p["densify_close"]) + 3
+        kw = 2 * int(p.densify_close) + 3
         with np.errstate(invalid="ignore"):
             for j, (th, _, take) in enumerate(planes):
                 pred = th[0] * X + th[1] * Y + th[2]
@@ -252,9 +229,9 @@ def plane_fill(rx: np.ndarray, ry: np.ndarray, rho: np.ndarray, var: np.ndarray,
         best = np.argmin(cost, axis=0)
         # and only where that neighbourhood agrees with it (mean normalized residual^2 of an
         # inlier neighbourhood is ~1): a pixel between two surfaces is left alone
-        label = np.where(cost.min(axis=0) <= p["densify_max_rchi2"], best, -1).astype(np.int32)
+        label = np.where(cost.min(axis=0) <= p.densify_max_rchi2, best, -1).astype(np.int32)
         # never at grazing incidence, where the plane's depth along the ray is ill-conditioned
-        cos_min = np.cos(np.radians(float(p["densify_max_incidence_deg"])))
+        cos_min = np.cos(np.radians(float(p.densify_max_incidence_deg)))
         for j, (th, _, _) in enumerate(planes):
             sel = np.flatnonzero(label == j)
             cos_i = np.abs(th[0] * X[sel] + th[1] * Y[sel] + th[2]) / (
@@ -266,7 +243,7 @@ def plane_fill(rx: np.ndarray, ry: np.ndarray, rho: np.ndarray, var: np.ndarray,
             pred = A @ th
             fill_rho[take_i] = pred
             fill_var[take_i] = np.einsum("ni,ij,nj->n", A, Cov, A) + \
-                (p["densify_var_floor"] * pred) ** 2
+                (p.densify_var_floor * pred) ** 2
     fill = (label >= 0) & ~conv
     fill_rho[~fill] = np.nan
     fill_var[~fill] = np.nan

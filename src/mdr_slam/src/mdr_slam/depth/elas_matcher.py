@@ -10,36 +10,40 @@ with depth is why the filter keeps its state in inverse depth (see ``depth.filte
 """
 from __future__ import annotations
 
-from typing import Dict, Optional, Tuple, Union
+from typing import Dict, Mapping, Optional, Tuple, Union
 
 import numpy as np
 
 from ..camera import StereoCamera
+from .config import ElasConfig
 
-__all__ = ["ElasMatcher", "ELAS_DEFAULTS", "measurement_from_disparity", "disparity_sigma", "to_gray8"]
+__all__ = ["ElasMatcher", "ELAS_PRESETS", "measurement_from_disparity", "disparity_sigma",
+           "to_gray8"]
 
-# Our defaults on top of the libelas preset. disp_max bounds the search (speed ~ disp range): 128
-# px covers Z >= f*B/128 (0.4 m for f=450 px, B=0.11 m). Every libelas parameter can be given.
-# subsampling (every 2nd pixel, ~2-3x faster) pairs with the filter's default stride 2, which
-# only reads every 2nd pixel anyway: on the simulator the filtered accuracy and density are the
-# same (scripts/eval_depth_sim.py), and ELAS + filter reach 10 Hz on one core at 752x480.
-ELAS_DEFAULTS: Dict[str, object] = {
-    "preset": "robotics",
-    "disp_min": 0,
-    "disp_max": 128,
-    "subsampling": True,
+# libelas' two presets (Elas::parameters(ROBOTICS / MIDDLEBURY) of libelas' elas.h), as data:
+# ElasMatcher sets every parameter from the table, then ElasConfig's disp_min, disp_max and
+# subsampling (our defaults: a 128 px search covers Z >= f*B/128, 0.4 m for f=450 px, B=0.11 m;
+# subsampling pairs with the filter's stride 2, which reads only every 2nd pixel anyway: the same
+# filtered accuracy and density on the simulator, scripts/eval_depth_sim.py, and ELAS + filter
+# reach 10 Hz on one core at 752x480). tests/depth/test_depth.py checks the tables against pyelas.
+ELAS_PRESETS: Dict[str, Dict[str, object]] = {
+    "robotics": {
+        "support_threshold": 0.85, "support_texture": 10, "candidate_stepsize": 5,
+        "incon_window_size": 5, "incon_threshold": 5, "incon_min_support": 5,
+        "add_corners": False, "grid_size": 20, "beta": 0.02, "gamma": 3.0, "sigma": 1.0,
+        "sradius": 2.0, "match_texture": 1, "lr_threshold": 2, "speckle_sim_threshold": 1.0,
+        "speckle_size": 200, "ipol_gap_width": 3, "filter_median": False,
+        "filter_adaptive_mean": True, "postprocess_only_left": True,
+    },
+    "middlebury": {
+        "support_threshold": 0.95, "support_texture": 10, "candidate_stepsize": 5,
+        "incon_window_size": 5, "incon_threshold": 5, "incon_min_support": 5,
+        "add_corners": True, "grid_size": 20, "beta": 0.02, "gamma": 5.0, "sigma": 1.0,
+        "sradius": 3.0, "match_texture": 0, "lr_threshold": 2, "speckle_sim_threshold": 1.0,
+        "speckle_size": 200, "ipol_gap_width": 5000, "filter_median": True,
+        "filter_adaptive_mean": False, "postprocess_only_left": False,
+    },
 }
-
-_ELAS_ATTRS = ("disp_min", "disp_max", "support_threshold", "support_texture", "candidate_stepsize",
-               "incon_window_size", "incon_threshold", "incon_min_support", "add_corners",
-               "grid_size", "beta", "gamma", "sigma", "sradius", "match_texture", "lr_threshold",
-               "speckle_sim_threshold", "speckle_size", "ipol_gap_width", "filter_median",
-               "filter_adaptive_mean", "postprocess_only_left", "subsampling")
-_INT_ATTRS = {"disp_min", "disp_max", "support_texture", "candidate_stepsize", "incon_window_size",
-              "incon_threshold", "incon_min_support", "grid_size", "match_texture", "lr_threshold",
-              "speckle_size", "ipol_gap_width"}
-_BOOL_ATTRS = {"add_corners", "filter_median", "filter_adaptive_mean", "postprocess_only_left",
-               "subsampling"}
 
 
 def to_gray8(img: np.ndarray, scale: Optional[float] = None) -> np.ndarray:
@@ -65,36 +69,24 @@ def to_gray8(img: np.ndarray, scale: Optional[float] = None) -> np.ndarray:
 
 
 class ElasMatcher:
-    """libelas with parameters from a dict (the depth node's ``~elas`` parameters).
-
-    ``preset``: ``robotics`` (libelas' default: small gaps interpolated, fast) or ``middlebury``
-    (every gap interpolated, corners added: denser, more wrong pixels on low texture). Any other
-    key is a libelas parameter of the same name (disp_min, disp_max, support_texture,
-    support_threshold, subsampling, ipol_gap_width, add_corners, match_texture, lr_threshold, ...).
+    """libelas with an :class:`~mdr_slam.depth.config.ElasConfig` (or a mapping of its fields):
+    the preset's table (:data:`ELAS_PRESETS`), then the config's disparity range and subsampling.
+    ``params`` holds every libelas parameter as set (and ``preset``).
     With ``subsampling`` libelas matches every 2nd pixel (about 3x faster); the result is brought
     back to full size (nearest) so callers always get an HxW disparity.
     """
 
-    def __init__(self, params: Optional[dict] = None):
+    def __init__(self, config: Union[None, ElasConfig, Mapping] = None):
         import elas
-        p = dict(ELAS_DEFAULTS)
-        p.update(params or {})
-        unknown = set(p) - set(_ELAS_ATTRS) - {"preset"}
-        if unknown:
-            raise ValueError("unknown ELAS parameter(s): %s" % ", ".join(sorted(unknown)))
-        preset = str(p["preset"]).lower()
-        if preset not in ("robotics", "middlebury"):
-            raise ValueError("ELAS preset must be 'robotics' or 'middlebury', got %r" % p["preset"])
+        self.cfg = cfg = ElasConfig.of(config)
+        values = dict(ELAS_PRESETS[cfg.preset], disp_min=cfg.disp_min, disp_max=cfg.disp_max,
+                      subsampling=cfg.subsampling)
         self._elas = elas.Elas()
         self._buffers = None  # persistent input buffers (see compute)
-        self._elas.set_preset(elas.PRESET_ROBOTICS if preset == "robotics" else elas.PRESET_MIDDLEBURY)
-        for k in _ELAS_ATTRS:
-            if k in p:
-                v = p[k]
-                v = bool(v) if k in _BOOL_ATTRS else int(v) if k in _INT_ATTRS else float(v)
-                setattr(self._elas, k, v)
-        self.params = {k: getattr(self._elas, k) for k in _ELAS_ATTRS}
-        self.params["preset"] = preset
+        for k, v in values.items():
+            setattr(self._elas, k, v)
+        self.params = {k: getattr(self._elas, k) for k in values}
+        self.params["preset"] = cfg.preset
 
     def compute(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
         """Left disparity (float32 HxW, pixels; <= 0 invalid) of a rectified grey pair."""

@@ -16,7 +16,7 @@ exact Bayesian update, and the large depth errors of far/low-texture pixels stay
 
 ``tau`` is RELATIVE: a point is converged when sigma_Z / Z = sigma_rho / rho <= tau. An absolute
 tau (metres) would, with sigma_Z ~ Z^2, admit only near points and never the far walls; a
-relative one keeps the same acceptance at every range (``tau_abs`` adds an optional absolute cap).
+relative one keeps the same acceptance at every range.
 Tau trades density for error: lower tau -> fewer, older, more accurate points (and a delay of
 more frames before a new surface appears); higher tau -> denser, earlier, noisier.
 
@@ -29,45 +29,16 @@ Loop closures: the state lives in the keyframe's camera frame, so a corrected ke
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Dict, Optional
+from typing import Dict, Mapping, Optional, Union
 
 import numpy as np
 
 from ..camera import StereoCamera
 from ..geometry import inv_T, is_valid_T, relative_motion
-from .densify import DENSIFY_DEFAULTS, plane_fill
+from .config import DepthConfig
+from .densify import plane_fill
 
-__all__ = ["DepthFilter", "DepthOutput", "KeyFrameDepth", "FILTER_DEFAULTS", "render_depth"]
-
-FILTER_DEFAULTS: Dict[str, object] = {
-    "temporal": True,           # False: the paper's ELAS-only baseline (every valid pixel)
-    "stride": 2,                # state on every stride-th pixel (speed vs density)
-    # keyframe selection
-    "kf_translation": 0.30,     # m moved since the keyframe
-    "kf_rotation_deg": 15.0,    # deg turned since the keyframe
-    "kf_min_overlap": 0.60,     # share of keyframe points still projecting into the image
-    "kf_max_frames": 30,        # frames per keyframe
-    # Kalman filter
-    "init_var_scale": 4.0,      # keyframe init: measurement variance x this ("high uncertainty")
-    "chi2_threshold": 6.63,     # innovation^2/(P+R) gate: chi-square 1 dof, 99 %
-    "process_noise": 0.003,     # relative depth std added per frame (keeps the filter responsive)
-    "interpolation": "nearest", # "nearest" or "bilinear" sampling of the current measurement
-    "bilinear_consistency": 0.05,  # bilinear only when the 4 neighbours agree within 5 % depth
-    "reinit_min_rejections": 3, # re-initialize a pixel rejected >= this often and ...
-    "reinit_ratio": 2.0,        # ... more than ratio x its accepted observations
-    "fill_holes": True,         # initialize empty keyframe pixels from later frames
-    # output
-    "tau": 0.01,                # converged when sigma_Z / Z <= tau (relative)
-    "tau_abs": 0.0,             # and sigma_Z <= tau_abs (m) when > 0
-    "min_obs": 3,               # observations (init included) before a point can be published
-    "carry_over": True,         # carry well-observed points into the next keyframe
-    "carry_tau": 0.03,          # ... those with sigma_Z / Z <= carry_tau and n_obs >= min_obs
-    "publish_visible_only": True,  # publish converged points that project into the current image
-    "min_depth": 0.2,
-    "max_depth": 8.0,
-}
-FILTER_DEFAULTS.update(DENSIFY_DEFAULTS)   # planar densification (depth/densify.py)
-FILTER_DEFAULTS["densify"] = "off"
+__all__ = ["DepthFilter", "DepthOutput", "KeyFrameDepth", "render_depth"]
 
 _EPS = 1e-6
 
@@ -157,23 +128,14 @@ class DepthFilter:
     :class:`DepthOutput`. ``new_keyframe``: None = decide from the pose (translation, rotation,
     overlap, max frames); True = an external keyframe event (the pose node's); False = do not
     switch unless the keyframe no longer overlaps the image (the filter could not update it).
+    ``config``: a :class:`~mdr_slam.depth.config.DepthConfig` or a mapping of its fields.
     """
 
-    def __init__(self, camera: StereoCamera, params: Optional[dict] = None):
+    def __init__(self, camera: StereoCamera, config: Union[None, DepthConfig, Mapping] = None):
         self.camera = camera
-        p = dict(FILTER_DEFAULTS)
-        p.update({k: v for k, v in (params or {}).items() if k in FILTER_DEFAULTS})
-        if p["interpolation"] not in ("nearest", "bilinear"):
-            raise ValueError("interpolation must be 'nearest' or 'bilinear', got %r"
-                             % (p["interpolation"],))
-        p["stride"] = max(1, int(p["stride"]))
-        if p["densify"] in (False, None, "none", ""):
-            p["densify"] = "off"
-        if p["densify"] not in ("off", "plane"):
-            raise ValueError("densify must be 'plane' or 'off', got %r" % (p["densify"],))
-        self.p = p
+        self.cfg = DepthConfig.of(config)
         w, h = camera.size
-        s = p["stride"]
+        s = self.cfg.stride
         us = np.arange(0, w, s, dtype=np.float32)
         vs = np.arange(0, h, s, dtype=np.float32)
         self.grid_shape = (len(vs), len(us))
@@ -244,7 +206,7 @@ class DepthFilter:
               else np.asarray(intensity, dtype=np.float32).reshape(-1))
         stats["n_measured"] = int(np.count_nonzero(np.isfinite(Zf)))
 
-        if not self.p["temporal"]:
+        if not self.cfg.temporal:
             return self._elas_only(Zf, Vf, If, stats)
 
         kf = self.kf
@@ -266,7 +228,7 @@ class DepthFilter:
         if reason:
             stats["kf_reason"] = reason
             carried = None
-            if self.p["carry_over"]:
+            if self.cfg.carry_over:
                 carried = (sel, u, v, zc)
             self._new_keyframe(stamp, T_map_cam, Zf, Vf, If, carried, keyframe_id, stats)
             return self._output(T_map_cam, True, stats)
@@ -285,81 +247,59 @@ class DepthFilter:
         g = (R3[0] * (uc - self.camera.cx) / self.camera.fx +
              R3[1] * (vc - self.camera.cy) / self.camera.fy + R3[2])   # dz_kf / dZ_cur
         z_kf = Zm * g + np.float32(T_kf_cur[2, 3])
-        good = z_kf > self.p["min_depth"]
+        good = z_kf > self.cfg.min_depth
         s_in, z_kf, var_z = s_in[good], z_kf[good], (g[good] ** 2) * Vm[good]
         y = 1.0 / z_kf                                  # inverse-depth measurement
         R = var_z * y ** 4                              # var(1/z) = var(z) / z^4
         self._fuse(kf, s_in, y, R, stats)
         kf.frames += 1
-        if self.p["fill_holes"]:
+        if self.cfg.fill_holes:
             self._fill_holes(kf, T_map_cam, Zf, Vf, If, covered, stats)
         return self._output(T_map_cam, False, stats)
 
     # ------------------------------------------------------------------ pieces
     def _switch_reason(self, kf: KeyFrameDepth, T_map_cam, overlap: float,
                        new_keyframe: Optional[bool]) -> str:
-        p = self.p
+        p = self.cfg
         if new_keyframe is True:
             return "event"
-        if overlap < p["kf_min_overlap"]:
+        if overlap < p.kf_min_overlap:
             return "overlap"
         if new_keyframe is False:
             return ""
         dt, dr = relative_motion(kf.T_map_kf, T_map_cam)
-        if dt > p["kf_translation"]:
+        if dt > p.kf_translation:
             return "translation"
-        if np.degrees(dr) > p["kf_rotation_deg"]:
+        if np.degrees(dr) > p.kf_rotation_deg:
             return "rotation"
-        if kf.frames + 1 >= p["kf_max_frames"]:
+        if kf.frames + 1 >= p.kf_max_frames:
             return "frames"
         return ""
 
     def _add_process_noise(self, kf: KeyFrameDepth) -> None:
-        q = self.p["process_noise"]
+        q = self.cfg.process_noise
         if q > 0:
             kf.var += (np.float32(q) * np.nan_to_num(kf.mu)) ** 2
 
     def _sample(self, Zf, Vf, uc, vc):
-        """Measurement (Z, var) at float pixel positions: nearest, or bilinear where the four
-        neighbours are valid and agree (so depth edges are never averaged into phantom points)."""
-        w, h = self.camera.size
-        ui = np.rint(uc).astype(np.int64)
-        vi = np.rint(vc).astype(np.int64)
-        ii = vi * w + ui
-        Zn, Vn = Zf[ii], Vf[ii]
-        # grid cells of the current image a keyframe hypothesis projects to (see _fill_holes)
-        st = self.p["stride"]
+        """Measurement (Z, var) at float pixel positions (the nearest pixel), and the grid
+        cells of the current image that keyframe hypotheses project to (see _fill_holes)."""
+        w = self.camera.size[0]
+        ii = np.rint(vc).astype(np.int64) * w + np.rint(uc).astype(np.int64)
+        st = self.cfg.stride
         gh, gw = self.grid_shape
         covered = np.zeros(gh * gw, dtype=bool)
         covered[np.minimum(np.rint(vc / st).astype(np.int64), gh - 1) * gw +
                 np.minimum(np.rint(uc / st).astype(np.int64), gw - 1)] = True
-        if self.p["interpolation"] != "bilinear" or len(uc) == 0:
-            return Zn, Vn, covered
-        u0 = np.clip(np.floor(uc).astype(np.int64), 0, w - 2)
-        v0 = np.clip(np.floor(vc).astype(np.int64), 0, h - 2)
-        a, b = uc - u0, vc - v0
-        i00 = v0 * w + u0
-        idx = (i00, i00 + 1, i00 + w, i00 + w + 1)
-        wts = ((1 - a) * (1 - b), a * (1 - b), (1 - a) * b, a * b)
-        Zs = np.stack([Zf[i] for i in idx])
-        Vs = np.stack([Vf[i] for i in idx])
-        W = np.stack(wts).astype(np.float32)
-        with np.errstate(invalid="ignore"):
-            zmin, zmax = Zs.min(axis=0), Zs.max(axis=0)
-            agree = np.isfinite(zmin) & np.isfinite(zmax) & \
-                (zmax - zmin <= self.p["bilinear_consistency"] * zmin)
-        Zb = (W * Zs).sum(axis=0)
-        Vb = (W * Vs).sum(axis=0)
-        return (np.where(agree, Zb, Zn).astype(np.float32),
-                np.where(agree, Vb, Vn).astype(np.float32), covered)
+        return Zf[ii], Vf[ii], covered
 
     def _fuse(self, kf: KeyFrameDepth, s: np.ndarray, y: np.ndarray, R: np.ndarray, stats) -> None:
         """Chi-square gated scalar Kalman update of hypotheses ``s`` with measurements ``y`` (R)."""
-        p = self.p
+        p = self.cfg
         mu, P = kf.mu[s], kf.var[s]
         innov = y - mu
         S = P + R
-        acc = innov * innov < p["chi2_threshold"] * S
+        acc = innov * innov < p.chi2_threshold * S
         K = P[acc] / S[acc]
         kf.mu[s[acc]] = mu[acc] + K * innov[acc]
         kf.var[s[acc]] = P[acc] * R[acc] / S[acc]         # (1 - K) P
@@ -368,11 +308,11 @@ class DepthFilter:
         kf.n_rej[rej] += 1
         # a hypothesis contradicted much more often than confirmed was wrong from the start
         # (an ELAS outlier at init, an occluder that moved): start again from this measurement
-        bad = (kf.n_rej[rej] >= p["reinit_min_rejections"]) & \
-            (kf.n_rej[rej] > p["reinit_ratio"] * kf.n_obs[rej])
+        bad = (kf.n_rej[rej] >= p.reinit_min_rejections) & \
+            (kf.n_rej[rej] > p.reinit_ratio * kf.n_obs[rej])
         rb = rej[bad]
         kf.mu[rb] = y[~acc][bad]
-        kf.var[rb] = p["init_var_scale"] * R[~acc][bad]
+        kf.var[rb] = p.init_var_scale * R[~acc][bad]
         kf.n_obs[rb] = 1
         kf.n_rej[rb] = 0
         stats["n_updated"] = stats.get("n_updated", 0) + int(np.count_nonzero(acc))
@@ -384,7 +324,7 @@ class DepthFilter:
         """New hypotheses at grid cells ``g`` from depth measurements, with inflated variance."""
         y = 1.0 / Zg
         kf.mu[g] = y
-        kf.var[g] = self.p["init_var_scale"] * Vg * y ** 4
+        kf.var[g] = self.cfg.init_var_scale * Vg * y ** 4
         kf.n_obs[g] = 1
         kf.n_rej[g] = 0
         kf.intensity[g] = Ig
@@ -405,8 +345,8 @@ class DepthFilter:
             # camera) with a z-buffer; variance propagated along the ray (z_new = g*z_old + t_z)
             mu, var = old.mu[sel], old.var[sel]
             rel = np.sqrt(var) / mu
-            keep = (old.n_obs[sel] >= self.p["min_obs"]) & (rel <= self.p["carry_tau"]) & \
-                (zc > self.p["min_depth"])
+            keep = (old.n_obs[sel] >= self.cfg.min_obs) & (rel <= self.cfg.carry_tau) & \
+                (zc > self.cfg.min_depth)
             gi = self._grid_index(u[keep], v[keep], zc[keep])
             ok = gi >= 0
             src = np.flatnonzero(keep)[ok]
@@ -444,7 +384,7 @@ class DepthFilter:
 
     def _grid_index(self, u: np.ndarray, v: np.ndarray, z: np.ndarray) -> np.ndarray:
         """Grid cell (nearest grid pixel) of projected points, -1 outside."""
-        s = self.p["stride"]
+        s = self.cfg.stride
         gh, gw = self.grid_shape
         if len(u) == 0:
             return np.zeros(0, dtype=np.int64)
@@ -471,7 +411,7 @@ class DepthFilter:
         x, y, z = _transform_depths(T_kf_cur, self._rx[src], self._ry[src], Zg[src])
         u, v = self._project(x, y, z)
         gi = self._grid_index(u, v, z)
-        ok = (gi >= 0) & (z > self.p["min_depth"])
+        ok = (gi >= 0) & (z > self.cfg.min_depth)
         ok[ok] = np.isnan(kf.mu[gi[ok]])
         src, gi, z = src[ok], gi[ok], z[ok]
         win = _zbuffer(gi, z)
@@ -482,13 +422,10 @@ class DepthFilter:
         stats["n_filled"] = int(len(gi))
 
     def _converged(self, kf: KeyFrameDepth) -> np.ndarray:
-        p = self.p
+        p = self.cfg
         with np.errstate(invalid="ignore"):
             sd_rho = np.sqrt(kf.var)
-            ok = np.isfinite(kf.mu) & (kf.n_obs >= p["min_obs"]) & (sd_rho <= p["tau"] * kf.mu)
-            if p["tau_abs"] > 0:
-                ok &= sd_rho / (kf.mu * kf.mu) <= p["tau_abs"]
-        return ok
+            return np.isfinite(kf.mu) & (kf.n_obs >= p.min_obs) & (sd_rho <= p.tau * kf.mu)
 
     def _output(self, T_map_cam, is_new: bool, stats) -> DepthOutput:
         kf = self.kf
@@ -498,7 +435,7 @@ class DepthFilter:
         stats["keyframe_frames"] = kf.frames
         rho, var = kf.mu, kf.var
         n_obs = kf.n_obs
-        if self.p["densify"] == "plane":
+        if self.cfg.densify == "plane":
             fill = self._densify(kf, conv, stats)
             if fill is not None:
                 conv = conv | fill
@@ -511,7 +448,7 @@ class DepthFilter:
             x, y = self._rx[c] * z, self._ry[c] * z
         else:
             x, y, z = _transform_depths(inv_T(T_map_cam) @ kf.T_map_kf, self._rx[c], self._ry[c], z)
-            if self.p["publish_visible_only"]:
+            if self.cfg.publish_visible_only:
                 w, h = self.camera.size
                 u, v = self._project(x, y, z)
                 keep = (z > _EPS) & (u >= -0.5) & (u < w - 0.5) & (v >= -0.5) & (v < h - 0.5)
@@ -528,12 +465,12 @@ class DepthFilter:
     def _densify(self, kf: KeyFrameDepth, conv: np.ndarray, stats) -> Optional[np.ndarray]:
         """Planar fill of the keyframe's non-converged pixels (depth/densify.py), re-fitted every
         ``densify_every`` frames of the keyframe; returns the fill mask (None = nothing)."""
-        every = max(1, int(self.p["densify_every"]))
+        every = max(1, self.cfg.densify_every)
         if kf.fill_rho is None or kf.frames - kf.fill_frame >= every:
             shape = self.grid_shape
             R, t = kf.T_map_kf[:3, :3], kf.T_map_kf[:3, 3]
             priors = []
-            margin = float(self.p["densify_prior_margin"])
+            margin = self.cfg.densify_prior_margin
             for n_w, d_w, lo, hi in self._planes:   # map planes -> rho = a x + b y + c here
                 d_c = d_w - float(n_w @ t)
                 if d_c <= 0.05:
@@ -546,11 +483,11 @@ class DepthFilter:
                     allowed = np.ones(len(z), bool)
                     for k in range(3):
                         allowed &= (Pw[k] >= lo[k] - margin) & (Pw[k] <= hi[k] + margin)
-                if np.count_nonzero(allowed) >= self.p["densify_min_pixels"]:
+                if np.count_nonzero(allowed) >= self.cfg.densify_min_pixels:
                     priors.append((th, allowed.reshape(shape)))   # (fewer could fill nothing)
             fill, frho, fvar, st = plane_fill(
                 self._rx.reshape(shape), self._ry.reshape(shape), kf.mu.reshape(shape),
-                kf.var.reshape(shape), kf.n_obs.reshape(shape), conv.reshape(shape), self.p,
+                kf.var.reshape(shape), kf.n_obs.reshape(shape), conv.reshape(shape), self.cfg,
                 np.random.default_rng(kf.id * 1000 + kf.frames), priors)
             kf.fill_rho, kf.fill_var, kf.fill_frame = frho.ravel(), fvar.ravel(), kf.frames
             stats["densify_planes"] = st["planes"]
@@ -558,9 +495,9 @@ class DepthFilter:
             self._remember_planes(st["new_planes"], st["new_regions"], kf)
         fill = np.isfinite(kf.fill_rho) & ~conv
         with np.errstate(invalid="ignore"):
-            zmax = self.p["densify_max_depth"] or self.p["max_depth"]
+            zmax = self.cfg.densify_max_depth or self.cfg.max_depth
             fill &= (kf.fill_rho > 1.0 / zmax) & \
-                (kf.fill_rho < 1.0 / self.p["min_depth"])
+                (kf.fill_rho < 1.0 / self.cfg.min_depth)
         stats["n_densified"] = int(np.count_nonzero(fill))
         return fill if stats["n_densified"] else None
 
@@ -568,7 +505,7 @@ class DepthFilter:
         """Keep the planes found in a keyframe for later keyframes: map-frame (normal, offset) and
         the map box of the pixels they filled here; a plane that matches a remembered one (3 deg,
         3 cm) replaces it and their boxes are merged."""
-        m = int(self.p["densify_memory"])
+        m = self.cfg.densify_memory
         if m <= 0:
             return
         R, t = kf.T_map_kf[:3, :3], kf.T_map_kf[:3, 3]

@@ -6,26 +6,16 @@ and the offline figures describe the same computation.
 from __future__ import annotations
 
 import time
-from typing import Dict, Optional
+from typing import Mapping, Optional, Union
 
 import numpy as np
 
 from ..camera import StereoCamera
-from .elas_matcher import (ELAS_DEFAULTS, ElasMatcher, disparity_sigma, measurement_from_disparity,
-                           to_gray8)
-from .filter import FILTER_DEFAULTS, DepthFilter, DepthOutput
+from .config import DepthConfig
+from .elas_matcher import ElasMatcher, disparity_sigma, measurement_from_disparity, to_gray8
+from .filter import DepthFilter, DepthOutput
 
-__all__ = ["StereoDepth", "DEPTH_DEFAULTS", "mask_discontinuities"]
-
-# Flat parameters (config/depth.yaml); ``elas`` is the dict of libelas parameters.
-DEPTH_DEFAULTS: Dict[str, object] = dict(FILTER_DEFAULTS)
-DEPTH_DEFAULTS.update({
-    "sigma_d": 0.5,             # disparity noise (px) of an ELAS match -> measurement variance
-    "sigma_d_texture": 1.0,     # > 0: add (k / local gradient)^2 (low texture = worse match)
-    "max_disparity_step": 3.0,  # px; > 0: mask pixels near depth discontinuities (see below)
-    "discontinuity_radius": 2,  # px; the neighbourhood of that test ((2r+1)^2 window)
-    "elas": dict(ELAS_DEFAULTS),
-})
+__all__ = ["StereoDepth", "mask_discontinuities"]
 
 
 def mask_discontinuities(disp: np.ndarray, max_step: float, radius: int = 2) -> np.ndarray:
@@ -47,28 +37,18 @@ def mask_discontinuities(disp: np.ndarray, max_step: float, radius: int = 2) -> 
     return out
 
 
-def split_params(params: Optional[dict]):
-    """(ELAS dict, measurement+filter dict) from the flat parameters; ``elas_<name>`` keys
-    override ``elas: {<name>: ...}`` so one value can be changed from the command line."""
-    params = dict(params or {})
-    elas_p = dict(params.pop("elas", None) or {})
-    for k in list(params):
-        if k.startswith("elas_"):
-            elas_p[k[5:]] = params.pop(k)
-    return elas_p, params
-
-
 class StereoDepth:
-    """Rectify -> ELAS -> (Z, var) -> DepthFilter, with per-stage timings (ms) in ``timings``."""
+    """Rectify -> ELAS -> (Z, var) -> DepthFilter, with per-stage timings (ms) in ``timings``.
 
-    def __init__(self, camera: StereoCamera, params: Optional[dict] = None):
+    ``config``: a :class:`~mdr_slam.depth.config.DepthConfig` or a mapping of its fields
+    (``StereoDepth(camera, {"tau": 0.02, "elas": {"disp_max": 64}})``); None: the defaults."""
+
+    def __init__(self, camera: StereoCamera,
+                 config: Union[None, DepthConfig, Mapping] = None):
         self.camera = camera
-        elas_p, p = split_params(params)
-        self.params = dict(DEPTH_DEFAULTS)
-        self.params.update(p)
-        self.matcher = ElasMatcher(elas_p)
-        self.params["elas"] = dict(self.matcher.params)
-        self.filter = DepthFilter(camera, self.params)
+        self.cfg = DepthConfig.of(config)
+        self.matcher = ElasMatcher(self.cfg.elas)
+        self.filter = DepthFilter(camera, self.cfg)
         if not camera.is_rectified:
             camera.rectify_maps()   # remap tables computed once, up front
 
@@ -99,7 +79,6 @@ class StereoDepth:
         t1 = time.perf_counter()
         disp = self.matcher.compute(left, right)
         t2 = time.perf_counter()
-        p = self.params
         Z, var = self.measurement(disp, left)
         t3 = time.perf_counter()
         t["rectify"] = 1e3 * (t1 - t0)
@@ -109,11 +88,11 @@ class StereoDepth:
 
     def measurement(self, disp: np.ndarray, grey: np.ndarray):
         """(Z, var) of a disparity with this configuration's noise model."""
-        p = self.params
-        if p["max_disparity_step"] > 0:
-            disp = mask_discontinuities(disp, p["max_disparity_step"], p["discontinuity_radius"])
-        sigma = disparity_sigma(grey, p["sigma_d"], p["sigma_d_texture"])
-        return measurement_from_disparity(disp, self.camera, sigma, p["min_depth"], p["max_depth"])
+        c = self.cfg
+        if c.max_disparity_step > 0:
+            disp = mask_discontinuities(disp, c.max_disparity_step, c.discontinuity_radius)
+        sigma = disparity_sigma(grey, c.sigma_d, c.sigma_d_texture)
+        return measurement_from_disparity(disp, self.camera, sigma, c.min_depth, c.max_depth)
 
     def process(self, stamp: float, left: np.ndarray, right: np.ndarray, T_map_cam: np.ndarray,
                 rectified: bool = False, new_keyframe: Optional[bool] = None,

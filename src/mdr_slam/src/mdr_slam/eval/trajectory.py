@@ -16,6 +16,7 @@ import numpy as np
 from ..io.trajectory import Trajectory, read_kitti_poses, read_trajectory
 
 __all__ = ["ALIGNMENTS", "TrajectoryErrors", "to_evo", "from_evo", "associate", "align",
+           "alignment_matrix", "transform_trajectory",
            "ate", "rpe", "read_for_eval", "summary_json"]
 
 ALIGNMENTS = ("se3", "sim3", "scale", "none")
@@ -82,6 +83,21 @@ def align(gt_evo, est_evo, mode: str = "se3", n: int = -1) -> Dict[str, object]:
                             n=n)
     return {"type": mode, "rotation": np.asarray(R).tolist(), "translation": np.asarray(t).tolist(),
             "scale": float(s)}
+
+
+def alignment_matrix(al: Dict[str, object]) -> np.ndarray:
+    """The 4x4 transform of an alignment as :func:`align` returns it (rotation, translation; a
+    scale other than 1 multiplies the rotation part)."""
+    T = np.eye(4)
+    if al.get("type", "none") != "none":
+        T[:3, :3] = float(al.get("scale", 1.0)) * np.asarray(al["rotation"], float)
+        T[:3, 3] = np.asarray(al["translation"], float)
+    return T
+
+
+def transform_trajectory(traj: Trajectory, T: np.ndarray) -> Trajectory:
+    """``traj`` moved by the rigid transform ``T`` (each pose P becomes T P)."""
+    return Trajectory.from_matrices(traj.stamps, [T @ P for P in traj.matrices()])
 
 
 def _stats(errors: np.ndarray) -> Dict[str, float]:

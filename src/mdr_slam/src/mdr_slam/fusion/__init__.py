@@ -1,21 +1,23 @@
 """Node 3's core (paper section 3.4): confidence-based global map fusion, occupancy grid, mesh.
 
-``VoxelMap`` is the fuse-update-clean map; ``mesh`` turns a map (or depth frames) into a TSDF
-triangle mesh. ROS-free: the node (mdr_slam.nodes.fusion_node) and the offline runner call these.
+``VoxelMap`` is the fuse-update-clean map (its parameters: ``VoxelMapConfig``); ``mesh`` turns a
+map (or depth frames) into a TSDF triangle mesh. ROS-free: the node (mdr_slam.nodes.fusion_node)
+and the offline runner call these.
 """
 from __future__ import annotations
 
 import os
 import sys
 
+from .config import VoxelMapConfig
 from .grid import grid_axes, grid_origin_T, occupancy_grid
 from .voxel_map import IntegrationStats, VoxelMap, normal_bins, voxel_downsample
 from .mesh import (auto_views, mesh_from_map, render_depth, tsdf_mesh, views_from_trajectory,
                    write_mesh)
 
-__all__ = ["limit_openmp_threads", "VoxelMap", "IntegrationStats", "normal_bins", "voxel_downsample", "grid_axes",
-           "grid_origin_T", "occupancy_grid", "render_depth", "auto_views", "views_from_trajectory", "tsdf_mesh",
-           "mesh_from_map", "write_mesh"]
+__all__ = ["limit_openmp_threads", "VoxelMap", "VoxelMapConfig", "IntegrationStats", "normal_bins",
+           "voxel_downsample", "grid_axes", "grid_origin_T", "occupancy_grid", "render_depth",
+           "auto_views", "views_from_trajectory", "tsdf_mesh", "mesh_from_map", "write_mesh"]
 
 
 def limit_openmp_threads(n: int = 1) -> bool:

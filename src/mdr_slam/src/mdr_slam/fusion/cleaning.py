@@ -1,11 +1,10 @@
-"""Clean step of the voxel map (paper 3.4.2): confidence, span and in-view checks, duplicate fold.
+"""Clean step of the voxel map (paper 3.4.2): confidence and span checks, duplicate fold.
 
 :class:`VoxelCleaning` is a mixin of :class:`~mdr_slam.fusion.voxel_map.VoxelMap`: points that come
-of age (``grace``) without enough confidence are removed, those of the same surface as an older
-point are folded into it, and with ``min_view_ratio`` points seen in too few of the clouds that had
-them in view are removed at the end of ``view_window`` (ORB-SLAM2's ``MapPointCulling`` likewise
-culls recent map points seen by too few keyframes or found in too few of the frames that had them
-in view). See :mod:`mdr_slam.fusion.voxel_map`.
+of age (``grace``) without enough confidence (or, with ``min_span``, seen over too short a time)
+are removed, those of the same surface as an older point are folded into it (ORB-SLAM2's
+``MapPointCulling`` likewise culls recent map points seen by too few keyframes). See
+:mod:`mdr_slam.fusion.voxel_map`.
 """
 from __future__ import annotations
 
@@ -48,8 +47,6 @@ class VoxelCleaning:
         a = self._a
         if full:
             self._pending.clear()
-            self._probation.clear()
-            self._probation_flat = None
             cand = np.nonzero(a["alive"][: self._top])[0]
             cand = cand[a["first_seen"][cand] <= now - self.grace]
         else:
@@ -64,41 +61,13 @@ class VoxelCleaning:
         conf = a["confidence"][cand]
         if self.min_span > 0:  # seen over too short a time: correlated clouds of one moment
             conf = np.where(a["last_seen"][cand] - a["first_seen"][cand] < self.min_span, 0, conf)
-        if self.min_view_ratio > 0 and (full or self.view_window <= self.grace):
-            conf = np.where(self._low_view_ratio(cand), 0, conf)
         bad = cand[conf < self.min_confidence]
         self._remove(bad)
         n_dup = 0
         if self.dup_normal > 0:
             n_dup = self._merge_duplicates(cand[conf >= self.min_confidence])
             self.n_duplicates += n_dup
-        n_view = 0
-        if self.min_view_ratio > 0 and self.view_window > self.grace and not full:
-            # confirmed points keep counting views until view_window, then face the ratio
-            good = cand[conf >= self.min_confidence]
-            good = good[a["alive"][good]]
-            if len(good):
-                self._probation.append((now, good, a["first_seen"][good].copy()))
-                self._probation_flat = None
-            batches = []
-            while self._probation and self._probation[0][0] <= now - (self.view_window - self.grace):
-                _, s, t0 = self._probation.popleft()
-                batches.append(s[a["alive"][s] & (a["first_seen"][s] == t0)])
-                self._probation_flat = None
-            if batches:
-                done = np.concatenate(batches)
-                low = done[self._low_view_ratio(done)]
-                self._remove(low)
-                self.n_view_removed += len(low)
-                n_view = len(low)
-        return len(bad) + n_dup + n_view
-
-    def _low_view_ratio(self, slots: np.ndarray) -> np.ndarray:
-        """Mask of the points seen in fewer than ``min_view_ratio`` of the clouds that had them in
-        view (:meth:`_count_views`): noise that one cloud in many happens to produce. Folds add
-        both counts, so the ratio survives them."""
-        a = self._a
-        return a["confidence"][slots] < self.min_view_ratio * a["views"][slots]
+        return len(bad) + n_dup
 
     def _merge_duplicates(self, slots: np.ndarray) -> int:
         """Fold the points ``slots`` (that just came of age) into an OLDER map point of the same

@@ -3,8 +3,8 @@
 :class:`VoxelIntegrator` is a mixin of :class:`~mdr_slam.fusion.voxel_map.VoxelMap`:
 :meth:`~VoxelIntegrator.integrate` moves a camera cloud into ``map``, downsamples it and gives it
 normals, associates every point with a map point (own voxel, then the neighbours near its border),
-averages the matches in, inserts the rest, keeps keys on their points' voxels (re-keying), counts
-the in-view evidence and keeps the map clock (see :mod:`mdr_slam.fusion.voxel_map`).
+averages the matches in, inserts the rest, keeps keys on their points' voxels (re-keying) and
+keeps the map clock (see :mod:`mdr_slam.fusion.voxel_map`).
 """
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ from typing import Optional
 
 import numpy as np
 
-from ..geometry import inv_T, is_valid_T, transform_points
-from .cloud import _KEY_LIMIT, _pack, grid_normals, normal_bins, voxel_downsample
+from ..geometry import is_valid_T, transform_points
+from .cloud import _KEY_LIMIT, grid_normals, normal_bins, voxel_downsample
 
 __all__ = ["VoxelIntegrator", "IntegrationStats"]
 
@@ -37,22 +37,6 @@ class VoxelIntegrator:
     """Fuse-update of a :class:`~mdr_slam.fusion.voxel_map.VoxelMap` (mixin)."""
 
     # ------------------------------------------------------------------ fuse / update
-    def _estimate_normals(self, P: np.ndarray, center: np.ndarray) -> np.ndarray:
-        if self.normal_method == "grid":  # PCA over the 2x2x2 cells of normal_radius around P
-            return grid_normals(P, center, self.normal_radius)
-        import open3d as o3d
-        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P))
-        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(
-            radius=self.normal_radius, max_nn=self.normal_max_nn))
-        N = np.asarray(pcd.normals)
-        if N.shape != P.shape:
-            N = np.zeros_like(P)
-            N[:, 2] = 1.0
-        # orient towards the camera: a visible surface faces the viewpoint (n . (c - p) > 0)
-        flip = np.einsum("ij,ij->i", N, center[None, :] - P) < 0
-        N[flip] *= -1.0
-        return N
-
     def integrate(self, points_cam, T_map_cam, stamp: float, intensity=None, weights=None,
                   anchor_id: Optional[int] = None, T_map_anchor=None) -> IntegrationStats:
         """Fuse one camera-frame cloud observed at ``stamp`` (s) with pose ``T_map_cam``.
@@ -117,7 +101,7 @@ class VoxelIntegrator:
         Id = ex.get("intensity", np.zeros(len(Pd)))
         st["n_down"] = len(Pd)
         center = T[:3, 3]
-        Nd = self._estimate_normals(Pd, center)
+        Nd = grid_normals(Pd, center, self.normal_radius)  # PCA over the 2x2x2 cells around P
         a = self._a
 
         if self.confidence:
@@ -170,8 +154,6 @@ class VoxelIntegrator:
             st["n_lookups"] += len(Pd)
 
         matched = target >= 0
-        if self.confidence and self.min_view_ratio > 0:
-            self._count_views(P[ok][ok_range], T, target[matched])
         if matched.any():
             self._merge(target[matched], Pd[matched], Nd[matched], wd[matched], Id[matched], stamp)
         st["n_merged"] = int(matched.sum())
@@ -191,7 +173,6 @@ class VoxelIntegrator:
             a["weight"][slots] = wd[um]
             a["intensity"][slots] = Id[um]
             a["confidence"][slots] = 1
-            a["views"][slots] = 1
             a["first_seen"][slots] = stamp
             a["last_seen"][slots] = stamp
             a["anchor"][slots] = -1 if anchor_id is None else anchor_id
@@ -202,14 +183,9 @@ class VoxelIntegrator:
             if self.confidence and len(slots):
                 self._pending.append((stamp, slots, stamp))  # (grace starts, slots, first_seen)
         self.n_integrations += 1
-        if self.confidence:
-            if self._last_clean is None:
-                self._last_clean = stamp
-            due = self.clean_every > 0 and self.n_integrations % self.clean_every == 0
-            due |= self.clean_period > 0 and stamp - self._last_clean >= self.clean_period
-            if due:
-                self._last_clean = stamp
-                st["n_removed"] = self._clean(stamp)
+        if self.confidence and self.clean_every > 0 and \
+                self.n_integrations % self.clean_every == 0:
+            st["n_removed"] = self._clean(stamp)
         st["map_size"] = self._n
         return st
 
@@ -227,60 +203,6 @@ class VoxelIntegrator:
             t = float(stamp) + self._time_offset
         self._t_last = t  # >= the previous one by construction
         return t
-
-    def _count_views(self, Pc: np.ndarray, T: np.ndarray, hits: np.ndarray) -> None:
-        """Count, for every point younger than ``view_window``, whether this cloud had it IN VIEW.
-
-        The camera-frame cloud ``Pc`` is binned by viewing direction (``x/z``, ``y/z`` in steps of
-        ``view_bin``, a coarse depth image without the camera model) keeping the nearest depth per
-        bin. A young map point is in view when its bin holds a measurement that does not occlude
-        it: nearest depth at least ``z - view_margin`` (the cloud saw the surface at the point, or
-        saw THROUGH it: free-space evidence, as OctoMap's and voxblox's ray misses). Points this
-        cloud associated with (``hits``) are in view by definition. Bins without measurements and
-        occluded points give no evidence either way (low-texture surfaces the depth filter rarely
-        converges on are not penalised). :meth:`clean` then keeps a point only when it was seen
-        in at least ``min_view_ratio`` of the clouds that had it in view: a noise sample that a
-        cloud produces now and then (one observation per lap, or a few correlated ones) stays
-        below the ratio however many laps pass, while a real surface is seen nearly every time it
-        is in view. Cost proportional to the cloud and the young points (those inserted in the
-        last ``view_window`` seconds and not removed or folded since), not to the map.
-        """
-        if not self._pending and not self._probation:
-            return
-        a = self._a
-        if self._probation_flat is None:  # the probation batches change only in clean()
-            self._probation_flat = (
-                np.concatenate([b[1] for b in self._probation] + [np.zeros(0, np.int64)]),
-                np.concatenate([b[2] for b in self._probation] + [np.zeros(0)]))
-        s = np.concatenate([self._probation_flat[0]] + [b[1] for b in self._pending])
-        t0 = np.concatenate([self._probation_flat[1]] +
-                            [np.full(len(b[1]), b[2]) for b in self._pending])
-        s = np.unique(s[a["alive"][s] & (a["first_seen"][s] == t0)])
-        if len(s) == 0:
-            return
-        Pc = Pc[Pc[:, 2] > 1e-6]
-        iv = np.isin(s, hits)
-        if len(Pc):
-            lim = _KEY_LIMIT - 1
-
-            def bins(X, z):  # direction bin of camera-frame points (one int64 each)
-                d = np.column_stack([X[:, 0] / z, X[:, 1] / z, np.zeros(len(X))]) / self.view_bin
-                return _pack(np.clip(np.floor(d), -lim, lim).astype(np.int64))
-
-            kc = bins(Pc, Pc[:, 2])
-            order = np.argsort(kc, kind="stable")
-            kc, zc = kc[order], Pc[order, 2]
-            first = np.concatenate([[0], np.nonzero(np.diff(kc))[0] + 1])
-            ku, zmin = kc[first], np.minimum.reduceat(zc, first)
-            Ti = inv_T(T)
-            Q = a["pos"][s].astype(np.float64) @ Ti[:3, :3].T + Ti[:3, 3]
-            front = Q[:, 2] > self.min_depth
-            q, zq = Q[front], Q[front, 2]
-            kq = bins(q, zq)
-            j = np.minimum(np.searchsorted(ku, kq), len(ku) - 1)
-            seen = (ku[j] == kq) & (zmin[j] >= zq - self.view_margin)
-            iv[np.nonzero(front)[0][seen]] = True
-        a["views"][s[iv]] += 1
 
     def _merge(self, t, P, N, w, I, stamp):
         """Weighted running mean of targets ``t`` (duplicates allowed) with new observations."""

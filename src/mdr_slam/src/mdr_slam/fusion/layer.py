@@ -22,7 +22,6 @@ _FIELDS = OrderedDict([
     ("weight", (np.float32, ())),
     ("intensity", (np.float32, ())),
     ("confidence", (np.int32, ())),
-    ("views", (np.int32, ())),           # clouds that had the point in view (first view_window s)
     ("first_seen", (np.float64, ())),
     ("last_seen", (np.float64, ())),
     ("anchor", (np.int64, ())),
@@ -131,7 +130,6 @@ class VoxelLayer:
         a["intensity"][u] = (W0 * a["intensity"][u] + acc(a["intensity"][src])) / Wn
         a["weight"][u] = Wn
         a["confidence"][u] += np.bincount(inv, weights=a["confidence"][src], minlength=m).astype(np.int32)
-        a["views"][u] += np.bincount(inv, weights=a["views"][src], minlength=m).astype(np.int32)
         np.minimum.at(a["first_seen"], u[inv], a["first_seen"][src])
         np.maximum.at(a["last_seen"], u[inv], a["last_seen"][src])
 

@@ -11,9 +11,13 @@ from collections import OrderedDict
 
 import numpy as np
 
+from ..io.map_dir import map_files
 from .cloud import normal_bins
 
-__all__ = ["MapIO"]
+__all__ = ["MapIO", "DENSE_FORMAT_VERSION", "save_dense_map", "load_dense_map"]
+
+DENSE_FORMAT = "mdr_slam dense map"
+DENSE_FORMAT_VERSION = 1
 
 
 class MapIO:
@@ -61,7 +65,16 @@ class MapIO:
             os.unlink(side)
         return n
 
-    def load(self, path, append: bool = False) -> int:
+    @staticmethod
+    def read_anchors(side: str) -> dict:
+        """The anchor poses of a ``<map>.anchors.json`` sidecar ({} when there is none)."""
+        if not side or not os.path.exists(side):
+            return {}
+        with open(side) as f:
+            return {int(k): np.asarray(v, dtype=np.float64).reshape(4, 4)
+                    for k, v in json.load(f)["anchors"].items()}
+
+    def load(self, path, append: bool = False, anchors: dict = None) -> int:
         """Read a map written by :meth:`save` (or any PLY/PCD cloud with x, y, z); ``path`` may
         also be a cloud dict (as :meth:`to_cloud` returns) to add points directly.
 
@@ -73,12 +86,8 @@ class MapIO:
         c = read_cloud(path) if isinstance(path, str) else path
         if not all(k in c for k in "xyz"):
             raise ValueError("%s has no x, y, z fields" % (path if isinstance(path, str) else "cloud"))
-        side = path + ".anchors.json" if isinstance(path, str) else ""
-        anchors = {}
-        if side and os.path.exists(side):
-            with open(side) as f:
-                anchors = {int(k): np.asarray(v, dtype=np.float64).reshape(4, 4)
-                           for k, v in json.load(f)["anchors"].items()}
+        if anchors is None:
+            anchors = self.read_anchors(path + ".anchors.json" if isinstance(path, str) else "")
         if not append:
             self.reset()
         self.anchors.update(anchors)
@@ -113,7 +122,6 @@ class MapIO:
         a["weight"][slots] = get("weight", 1.0, np.float32)[sel]
         a["intensity"][slots] = get("intensity", 0.0, np.float32)[sel]
         a["confidence"][slots] = get("confidence", max(self.min_confidence, 1), np.int32)[sel]
-        a["views"][slots] = a["confidence"][slots]  # not saved: a loaded point counts as confirmed
         a["first_seen"][slots] = get("first_seen", 0.0, np.float64)[sel]
         a["last_seen"][slots] = get("last_seen", 0.0, np.float64)[sel]
         a["anchor"][slots] = get("anchor_id", -1, np.int64)[sel]
@@ -134,3 +142,54 @@ class MapIO:
             self._free = np.concatenate([self._free, lost])
             self._n -= len(lost)
         return self._n
+
+
+def _meta_path(folder: str) -> str:
+    return os.path.splitext(map_files(folder)["dense"])[0] + ".json"
+
+
+def save_dense_map(vmap, folder: str) -> int:
+    """The dense map into a map folder (mdr_slam.io.map_dir): ``dense_map.ply`` with every
+    point's state, then ``dense_map.json`` (format, version, voxel size, points); each written
+    atomically. Returns the number of points."""
+    from ..io import atomic_write
+    os.makedirs(folder, exist_ok=True)
+    n = vmap.save(map_files(folder)["dense"])
+    meta = {"format": DENSE_FORMAT, "format_version": DENSE_FORMAT_VERSION,
+            "voxel_size": float(vmap.voxel_size), "points": int(n)}
+    atomic_write(_meta_path(folder), json.dumps(meta, indent=1), "w")
+    return n
+
+
+def load_dense_map(vmap, folder: str, append: bool = False) -> int:
+    """Load a map folder's dense map into ``vmap``; a missing, truncated or corrupt file or
+    another format version raises ValueError and leaves ``vmap`` as it was. Returns the number
+    of points in the map afterwards."""
+    from ..io import read_cloud
+    path, meta_path = map_files(folder)["dense"], _meta_path(folder)
+    try:
+        with open(meta_path) as f:
+            meta = json.load(f)
+    except (IOError, OSError) as e:
+        raise ValueError("no dense map in %s (%s)" % (folder, e))
+    except ValueError as e:
+        raise ValueError("corrupt %s: %s" % (meta_path, e))
+    if not isinstance(meta, dict) or meta.get("format") != DENSE_FORMAT:
+        raise ValueError("%s is not an MDR-SLAM dense map description" % meta_path)
+    if meta.get("format_version") != DENSE_FORMAT_VERSION:
+        raise ValueError("%s has format version %r; this MDR-SLAM reads version %d"
+                         % (path, meta.get("format_version"), DENSE_FORMAT_VERSION))
+    try:
+        cloud = read_cloud(path)
+    except (IOError, OSError) as e:
+        raise ValueError("cannot read %s: %s" % (path, e))
+    except (ValueError, KeyError, IndexError, TypeError, UnicodeDecodeError) as e:
+        raise ValueError("corrupt dense map %s: %s: %s" % (path, type(e).__name__, e))
+    n = len(cloud.get("x", ()))
+    if n != meta.get("points"):
+        raise ValueError("corrupt dense map %s: %d points, %s expected" % (path, n, meta.get("points")))
+    try:
+        anchors = vmap.read_anchors(path + ".anchors.json")
+    except (ValueError, KeyError, TypeError) as e:
+        raise ValueError("corrupt %s.anchors.json: %s" % (path, e))
+    return vmap.load(cloud, append=append, anchors=anchors)

@@ -29,6 +29,26 @@ def atomic_path(path: str, suffix: str = ""):
             os.unlink(tmp)
 
 
+def remove_stale_temporaries(path: str) -> int:
+    """Delete the temporary files :func:`atomic_path` left next to ``path`` when a writer was
+    killed mid-write (call it before the owner of ``path`` starts writing). Returns how many."""
+    path = os.path.abspath(path)
+    d, prefix = os.path.dirname(path), "." + os.path.basename(path) + "."
+    n = 0
+    try:
+        names = os.listdir(d)
+    except OSError:
+        return 0
+    for name in names:
+        if name.startswith(prefix):
+            try:
+                os.unlink(os.path.join(d, name))
+                n += 1
+            except OSError:
+                pass
+    return n
+
+
 def atomic_write(path: str, data, mode: str = "wb") -> None:
     """Write ``data`` (bytes or str) to ``path`` atomically."""
     with atomic_path(path) as tmp:

@@ -5,19 +5,20 @@ lives here: a node converts messages with mdr_slam.conversions, calls the core, 
 """
 
 
+def node_configs(node: str) -> tuple:
+    """The Config classes of a node, ``pose``, ``depth`` or ``fusion``: its own parameters first,
+    then those of the core classes it drives. The node's private parameters, its shipped
+    config/<node>.yaml and ``mdr run --set NODE.KEY=...`` override their fields."""
+    from .config import NODE_CONFIGS
+    if node not in NODE_CONFIGS:
+        raise ValueError("node must be pose, depth or fusion, got %r" % node)
+    return NODE_CONFIGS[node]
+
+
 def node_defaults(node: str) -> dict:
-    """Every parameter a node reads, with its default: ``pose``, ``depth`` or ``fusion`` (the
-    node's own keys and those of the core class it drives). The shipped config/<node>.yaml
-    only overrides these; a key outside them is a typo."""
-    if node == "pose":
-        from ..pose.params import DEFAULT_PARAMS
-        from .pose_node import DEFAULTS
-        return dict(DEFAULTS, **DEFAULT_PARAMS)
-    if node == "depth":
-        from ..depth import DEPTH_DEFAULTS
-        from .depth_node import DEFAULTS
-        return dict(DEFAULTS, **DEPTH_DEFAULTS)
-    if node == "fusion":
-        from .fusion_node import DEFAULTS
-        return dict(DEFAULTS)
-    raise ValueError("node must be pose, depth or fusion, got %r" % node)
+    """Every parameter a node reads, with its default (see :func:`node_configs`); a key outside
+    them is a typo."""
+    out = {}
+    for c in node_configs(node):
+        out.update(c.defaults())
+    return out

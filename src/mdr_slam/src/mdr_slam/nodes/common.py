@@ -1,22 +1,51 @@
 """Helpers shared by the nodes: parameters, throttled warnings, time checks, tf."""
 from __future__ import annotations
 
-import numpy as np
+import os
+import re
+import time
 
-from ..geometry import parse_transform  # noqa: F401  (the nodes' transform arguments)
+import numpy as np
+import rospy
+import rospy.rostime
+import tf2_ros
+import yaml
+
+from ..config import ConfigError
 
 
 def get_params(defaults: dict, ns: str = "~") -> dict:
     """Read every key of ``defaults`` from the parameter server (private namespace by default)."""
-    import rospy
     return {k: rospy.get_param(ns + k, v) for k, v in defaults.items()}
+
+
+def read_config(node: str, *configs):
+    """The node's private parameters as instances of ``configs`` (Config classes, one per
+    component the node drives), each key read from the parameter server with the class's default.
+    Private parameters no class names are logged as errors (:func:`unknown_params`); a value of
+    the wrong type is logged and its default used, so a typo never stops the node."""
+    defaults = {}
+    for c in configs:
+        defaults.update(c.defaults())
+    unknown_params(defaults, node)
+    values = get_params(defaults)
+    out = []
+    for c in configs:
+        mine = {k: values[k] for k in c.keys()}
+        for k in c.keys():
+            try:
+                c.from_dict({k: mine[k]})
+            except ConfigError as e:
+                rospy.logerr("%s: ~%s: %s; using the default %r", node, k, e, defaults[k])
+                mine[k] = defaults[k]
+        out.append(c.from_dict(mine))
+    return out
 
 
 def unknown_params(known, node: str) -> list:
     """Private parameters of this node that no default names (a typo in a YAML file or on the
     command line would otherwise be ignored in silence): logged as an error, and returned.
     A key whose default is a dict (``elas``) covers its sub-keys."""
-    import rospy
     base = rospy.get_name()
     have = set()
     for name in rospy.get_param_names():
@@ -29,6 +58,46 @@ def unknown_params(known, node: str) -> list:
     return bad
 
 
+class RunMarker:
+    """"Running, not yet saved on a clean exit": a file a node keeps beside its autosave while it
+    runs. A node started while an earlier node of the same ROS session (``/run_id``) left its
+    marker knows that node died (e.g. respawned by roslaunch) and resumes its autosave."""
+
+    def __init__(self, path: str, node: str):
+        self.path = path
+        self.node = node
+        self.run_id = str(rospy.get_param("/run_id", ""))
+
+    def crashed_before(self, autosave: str) -> bool:
+        """An earlier node of this session left the marker, and its autosave ``autosave`` exists."""
+        try:
+            with open(self.path) as f:
+                words = f.read().split()
+        except (IOError, OSError):
+            return False
+        return bool(words) and words[0] == self.run_id and os.path.exists(autosave)
+
+    def write(self) -> bool:
+        try:
+            d = os.path.dirname(self.path)
+            if d and not os.path.isdir(d):
+                os.makedirs(d)
+            with open(self.path, "w") as f:
+                f.write("%s %d\n" % (self.run_id, os.getpid()))
+            return True
+        except (IOError, OSError) as e:
+            rospy.logwarn("%s: cannot write %s (%s): no resume after a crash", self.node,
+                          self.path, e)
+            return False
+
+    def clear(self) -> None:
+        """A clean exit: nothing to resume."""
+        try:
+            os.unlink(self.path)
+        except OSError:
+            pass
+
+
 class Throttled:
     """rospy log calls limited to one per ``period`` seconds per key (logwarn_throttle keys on the
     call site only; here the key is the message kind, so distinct problems are all reported)."""
@@ -39,9 +108,6 @@ class Throttled:
         self.counts = {}
 
     def __call__(self, key: str, text: str, level: str = "warn") -> None:
-        import re
-        import time
-        import rospy
         self.counts[key] = self.counts.get(key, 0) + 1
         now = time.monotonic()
         # throttled per kind and wording (numbers aside): a truncated image does not hide a wrong
@@ -107,7 +173,6 @@ class ClockWatch:
         self.last = -np.inf
 
     def jumped(self) -> bool:
-        import rospy
         now = rospy.Time.now().to_sec()
         j = now < self.last - 1e-3
         self.last = now
@@ -129,8 +194,6 @@ def seconds_ahead_of_clock(stamp: float, max_future: float) -> float:
     """
     if max_future <= 0:
         return 0.0
-    import rospy
-    import rospy.rostime
     if rospy.rostime.is_wallclock():
         return 0.0
     now = rospy.Time.now().to_sec()
@@ -157,8 +220,6 @@ def transform_listener(buffer, max_future: float, warn: "Throttled", node: str, 
     time; a lookup at a stamp the pose node has not published yet then interpolates towards it
     instead of waiting (and failing cleanly after ``tf_timeout``). Static transforms are kept.
     """
-    import rospy
-    import tf2_ros
 
     class _Listener(tf2_ros.TransformListener):
         def callback(self, data):
@@ -183,7 +244,6 @@ def transform_listener(buffer, max_future: float, warn: "Throttled", node: str, 
 
 def frame_root(buffer, frame: str) -> str:
     """The root of ``frame``'s tree in a tf2 buffer (``frame`` itself when it has no parent)."""
-    import yaml
     try:
         frames = yaml.safe_load(buffer.all_frames_as_yaml()) or {}
     except Exception:   # noqa: BLE001  (an empty buffer gives "[]")

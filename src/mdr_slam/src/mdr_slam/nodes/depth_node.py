@@ -24,7 +24,7 @@ CPU is better spent on relocalization.
 Bad input is logged (throttled, one line per kind) and skipped; the node never dies on input.
 A bag loop (the clock jumping back) resets the filter and the tf buffer; pairs and transforms
 stamped more than ``~max_future_stamp`` ahead of the clock (the old lap's last ones, delivered
-after the jump) are dropped, so no pose is interpolated across the jump (tests/test_time_jump.py).
+after the jump) are dropped, so no pose is interpolated across the jump (tests/ros/test_time_jump.py).
 
 Memory in long runs: the node's ~20 threads (the two workers, rospy's per-connection receivers,
 timers) allocate in up to 16 glibc malloc arenas. The slow RSS creep of a looped live run
@@ -48,45 +48,31 @@ import threading
 import time
 from typing import Optional
 
+import diagnostic_updater
 import numpy as np
+import rospy
+import tf2_ros
+from diagnostic_msgs.msg import DiagnosticStatus
+from geometry_msgs.msg import PoseStamped
+from sensor_msgs.msg import Image, PointCloud2
 
-from .common import (ClockWatch, StampGuard, StampRateLimiter, Throttled, get_params,
-                     skip_future_stamp, transform_listener, unknown_params)
-from .health import update_diagnostics
-from ..conversions import image_msg_to_mono8 as to_mono8
+from ..camera import CalibrationError, StereoCamera, images_are_rectified
+from ..conversions import (ConversionError, arrays_to_pointcloud2, camera_info_to_model,
+                           image_msg_to_mono8 as to_mono8, numpy_to_image, pose_stamped_to_matrix,
+                           pose_to_matrix, transform_stamped_to_matrix)
+from ..depth import DepthConfig, PoseCache, StereoDepth, render_depth
+from .common import (ClockWatch, StampGuard, StampRateLimiter, Throttled, read_config,
+                     skip_future_stamp, transform_listener)
+from .config import NODE_CONFIGS, DepthNodeConfig
+from .health import ProcessHealth, update_diagnostics
+from .memdebug import set_mmap_threshold, start_from_env
 from .stereo_input import StereoInput
-
-DEFAULTS = {
-    "map_frame": "map",
-    "camera_frame": "",             # tf frame of the left camera; empty = the image's frame_id
-    "use_tf": True,                 # pose from tf2; False: from pose_source_topic
-    "pose_source_topic": "mdr/pose",
-    "tf_timeout": 0.1,              # s to wait for tf / for the pose of an image stamp
-    "max_future_stamp": 1.0,        # s (sim time): pairs and tf stamped further ahead of the clock are dropped
-    "max_rate": 12.0,               # Hz of pairs processed (by stamp); 0 = every pair
-    "tracking_state_topic": "mdr/tracking_state",    # skip pairs while LOST ("" = never)
-    "pose_max_gap": 0.25,           # s between two cached poses to interpolate between them
-    "keyframe_topic": "mdr/keyframes",
-    "use_keyframe_events": True,    # follow the pose node's keyframes once it publishes any
-    "sync_tolerance": 0.0,          # s between a stereo pair's stamps; 0 = 0.4 of the frame period
-    "sync_queue_size": 10,
-    "image_transport": "raw",       # raw or compressed (<image topic>/compressed)
-    "rectified": "auto",            # auto: image_rect* topics and distortion-free camera_info are rectified
-    "calib": "",                    # calibration file(s) for inputs without camera_info
-    "publish_depth_image": False,
-    "diagnostics_period": 1.0,
-    # bytes: fixed glibc mmap threshold (1048576: flat RSS in long runs, but +60 % CPU per frame
-    # from page faults); 0 = glibc's dynamic threshold. See the docstring (memory in long runs).
-    "malloc_mmap_threshold": 0,
-}
 
 
 class DepthNode:
-    def __init__(self, p: dict):
-        import rospy
-        from sensor_msgs.msg import Image, PointCloud2
-        from ..depth import DEPTH_DEFAULTS, PoseCache
-        self.p = p
+    def __init__(self, cfg: DepthNodeConfig, depth_cfg: DepthConfig):
+        self.cfg = cfg
+        self.depth_cfg = depth_cfg            # StereoDepth's, (re)built per calibration
         self.warn = Throttled()
         self.guard = StampGuard()
         self.lock = threading.Lock()          # the filter: worker thread vs keyframe events
@@ -95,13 +81,12 @@ class DepthNode:
         self.depth = None
         self.camera_key = None
         self.fixed_camera = None
-        self.depth_params = {k: p[k] for k in DEPTH_DEFAULTS}
         self.counts = {"received": 0, "processed": 0, "dropped": 0, "skipped": 0, "published": 0,
                        "throttled": 0, "paused_lost": 0, "future": 0}
         self.lost_at = None                   # stamp of the pose node's last LOST report
         self.matched = collections.deque()    # ELAS done, waiting for the filter (stamp order)
         self.max_matched = 3                  # more: the filter stage is behind, drop the oldest
-        self.limiter = StampRateLimiter(p["max_rate"])
+        self.limiter = StampRateLimiter(cfg.max_rate)
         self.cpu_s = {"match": 0.0, "filter": 0.0}   # thread CPU of the two stages (diagnostics)
         self.generation = 0                   # +1 per filter reset: queued pairs of before are stale
         self.last_latency = float("nan")
@@ -114,70 +99,64 @@ class DepthNode:
         self.kf_poses = {}                    # id -> last known pose of pending / current keyframes
         self.clock = ClockWatch()             # ROS time jumping back: a new timeline
 
-        if p["calib"]:
-            self.fixed_camera = self._load_calib(p["calib"])
+        if cfg.calib:
+            self.fixed_camera = self._load_calib(cfg.calib)
         self.pub_points = rospy.Publisher("mdr/depth/points", PointCloud2, queue_size=2)
         self.pub_image = (rospy.Publisher("mdr/depth/image", Image, queue_size=2)
-                          if p["publish_depth_image"] else None)
+                          if cfg.publish_depth_image else None)
         self.input = StereoInput("depth_node", self.on_images, self.warn,
-                                 float(p["sync_tolerance"]), str(p["image_transport"]),
+                                 cfg.sync_tolerance, cfg.image_transport,
                                  with_info=self.fixed_camera is None,
-                                 queue_size=int(p["sync_queue_size"]))
+                                 queue_size=cfg.sync_queue_size)
         if self.fixed_camera is not None:
             self.fixed_camera = self._rectified(self.fixed_camera)
 
         self.tf_buffer = None
-        self.pose_cache = PoseCache(max_gap=p["pose_max_gap"])
-        if p["use_tf"]:
-            import tf2_ros
+        self.pose_cache = PoseCache(max_gap=cfg.pose_max_gap)
+        if cfg.use_tf:
             self.tf_buffer = tf2_ros.Buffer(cache_time=rospy.Duration(30.0))
-            self.tf_listener = transform_listener(self.tf_buffer, p["max_future_stamp"], self.warn,
+            self.tf_listener = transform_listener(self.tf_buffer, cfg.max_future_stamp, self.warn,
                                                   "depth_node")
         else:
-            from geometry_msgs.msg import PoseStamped
-            self.sub_pose = rospy.Subscriber(p["pose_source_topic"], PoseStamped, self.on_pose,
+            self.sub_pose = rospy.Subscriber(cfg.pose_source_topic, PoseStamped, self.on_pose,
                                              queue_size=100)
-        if p["tracking_state_topic"]:
+        if cfg.tracking_state_topic:
             try:
                 from mdr_slam_msgs.msg import TrackingState
-                self.sub_state = rospy.Subscriber(p["tracking_state_topic"], TrackingState,
+                self.sub_state = rospy.Subscriber(cfg.tracking_state_topic, TrackingState,
                                                   self.on_state, queue_size=20)
             except ImportError as e:
                 rospy.logwarn("depth_node: mdr_slam_msgs unavailable (%s); not pausing when LOST", e)
-        if p["use_keyframe_events"]:
+        if cfg.use_keyframe_events:
             try:
                 from mdr_slam_msgs.msg import KeyFrameArray
-                self.sub_kf = rospy.Subscriber(p["keyframe_topic"], KeyFrameArray, self.on_keyframes,
+                self.sub_kf = rospy.Subscriber(cfg.keyframe_topic, KeyFrameArray, self.on_keyframes,
                                                queue_size=20)
             except ImportError as e:
                 rospy.logwarn("depth_node: mdr_slam_msgs unavailable (%s); automatic keyframes", e)
 
-        import diagnostic_updater
-        from .health import ProcessHealth
         self.health = ProcessHealth()
         self.updater = diagnostic_updater.Updater()
         self.updater.setHardwareID("mdr_depth")
-        self.updater.period = p["diagnostics_period"]
+        self.updater.period = cfg.diagnostics_period
         self.updater.add("depth", self._diagnostics)
         # also without input (the worker updates after each frame): "no frame processed yet"
-        self.diag_timer = rospy.Timer(rospy.Duration(max(0.1, p["diagnostics_period"])),
+        self.diag_timer = rospy.Timer(rospy.Duration(max(0.1, cfg.diagnostics_period)),
                                       lambda _e: update_diagnostics(self.updater), reset=True)
         self.worker = threading.Thread(target=self._work, name="depth_elas", daemon=True)
         self.worker.start()
         self.filter_worker = threading.Thread(target=self._work_filter, name="depth_filter",
                                               daemon=True)
         self.filter_worker.start()
-        from .memdebug import set_mmap_threshold
-        if int(p["malloc_mmap_threshold"]) > 0 and not set_mmap_threshold(p["malloc_mmap_threshold"]):
+        if cfg.malloc_mmap_threshold > 0 and not set_mmap_threshold(cfg.malloc_mmap_threshold):
             rospy.logwarn("depth_node: cannot set malloc_mmap_threshold (not glibc?)")
         rospy.loginfo("depth_node: %s, temporal=%s, pose from %s, listening on %s and %s",
                       "calib file" if self.fixed_camera is not None else "camera_info",
-                      p["temporal"], "tf" if p["use_tf"] else p["pose_source_topic"],
+                      depth_cfg.temporal, "tf" if cfg.use_tf else cfg.pose_source_topic,
                       self.input.topics["left"], self.input.topics["right"])
 
     # ------------------------------------------------------------------ set-up helpers
     def _load_calib(self, path):
-        import rospy
         try:
             from ..calib import load_stereo_calibration
             cam = load_stereo_calibration(path)
@@ -190,13 +169,10 @@ class DepthNode:
 
     def _camera_for(self, linfo, rinfo):
         """StereoCamera for this pair; StereoDepth is (re)built when the calibration changes."""
-        from ..camera import StereoCamera
-        from ..conversions import camera_info_to_model
-        from ..depth import StereoDepth
         if self.fixed_camera is not None:
             key = "calib"
             if self.camera_key != key:
-                self.depth = StereoDepth(self.fixed_camera, self.depth_params)
+                self.depth = StereoDepth(self.fixed_camera, self.depth_cfg)
                 self.camera_key = key
             return
         key = (tuple(linfo.K), tuple(linfo.P), tuple(linfo.D), tuple(linfo.R), linfo.width,
@@ -204,17 +180,15 @@ class DepthNode:
         if key != self.camera_key:
             cam = self._rectified(StereoCamera(camera_info_to_model(linfo),
                                                camera_info_to_model(rinfo)))
-            self.depth = StereoDepth(cam, self.depth_params)
+            self.depth = StereoDepth(cam, self.depth_cfg)
             self.camera_key = key
-            import rospy
             rospy.loginfo("depth_node: camera %dx%d fx=%.1f B=%.4f m%s%s", cam.size[0], cam.size[1],
                           cam.fx, cam.baseline, "" if cam.is_rectified else " (rectifying)",
                           " doffs=%+.3f px (right cx differs)" % cam.doffs if cam.doffs else "")
 
     def _rectified(self, cam):
         """``cam``, taken as rectified when the images already are (``~rectified``)."""
-        from ..camera import images_are_rectified
-        if images_are_rectified(self.p["rectified"], self.input.topics["left"], cam) and \
+        if images_are_rectified(self.cfg.rectified, self.input.topics["left"], cam) and \
                 not cam.is_rectified:
             return cam.assume_rectified()
         return cam
@@ -239,7 +213,7 @@ class DepthNode:
 
     def _from_the_future(self, t: float) -> bool:
         """A pair stamped ahead of the clock (the old lap's last pairs after a bag loop): skip."""
-        if skip_future_stamp(t, self.p["max_future_stamp"], self.warn, "depth_node: stereo"):
+        if skip_future_stamp(t, self.cfg.max_future_stamp, self.warn, "depth_node: stereo"):
             self.counts["future"] += 1
             return True
         return False
@@ -251,7 +225,6 @@ class DepthNode:
             self.lost_at = msg.header.stamp.to_sec() if lost else None
 
     def on_pose(self, msg):
-        from ..conversions import ConversionError, pose_stamped_to_matrix
         try:
             T = pose_stamped_to_matrix(msg)
         except ConversionError as e:
@@ -263,7 +236,6 @@ class DepthNode:
         self.pose_cache.add(t, T)
 
     def on_keyframes(self, msg):
-        from ..conversions import ConversionError, pose_to_matrix
         self.kf_events_seen = True
         with self.lock:
             for kf in msg.keyframes:
@@ -295,7 +267,6 @@ class DepthNode:
     # ------------------------------------------------------------------ workers
     def _work_filter(self):
         """Stage 2: matched pairs in stamp order -> pose, temporal filter, publish."""
-        import rospy
         while not rospy.is_shutdown():
             with self.cv:
                 while not self.matched and not rospy.is_shutdown():
@@ -319,7 +290,6 @@ class DepthNode:
 
     def _work(self):
         """Stage 1: the newest pair -> checks, conversion, ELAS -> the filter stage's queue."""
-        import rospy
         while not rospy.is_shutdown():
             with self.cv:
                 while self.pending is None and not rospy.is_shutdown():
@@ -330,25 +300,22 @@ class DepthNode:
             self._step("match", self.process, item)
 
     def _pose_at(self, stamp, frame: str) -> Optional[np.ndarray]:
-        import rospy
-        from ..conversions import transform_stamped_to_matrix
         if self.tf_buffer is not None:
-            import tf2_ros
             try:
-                ts = self.tf_buffer.lookup_transform(self.p["map_frame"], frame, stamp,
-                                                     rospy.Duration(self.p["tf_timeout"]))
+                ts = self.tf_buffer.lookup_transform(self.cfg.map_frame, frame, stamp,
+                                                     rospy.Duration(self.cfg.tf_timeout))
                 return transform_stamped_to_matrix(ts)
             except (tf2_ros.LookupException, tf2_ros.ConnectivityException,
                     tf2_ros.ExtrapolationException, tf2_ros.TransformException) as e:
                 self.warn("tf", "depth_node: no pose %s <- %s at %.3f (%s); frame skipped"
-                          % (self.p["map_frame"], frame, stamp.to_sec(), str(e).splitlines()[0]))
+                          % (self.cfg.map_frame, frame, stamp.to_sec(), str(e).splitlines()[0]))
                 return None
             except rospy.ROSTimeMovedBackwardsException:
                 self.warn("tfback", "depth_node: time went backwards while waiting for the pose at "
                           "%.3f (bag loop?); frame skipped" % stamp.to_sec())
                 return None
         t = stamp.to_sec()
-        deadline = time.monotonic() + self.p["tf_timeout"]
+        deadline = time.monotonic() + self.cfg.tf_timeout
         while True:  # the pose of this very frame may still be on its way from the pose node
             T = self.pose_cache.lookup(t)
             if T is not None or time.monotonic() > deadline:
@@ -356,14 +323,12 @@ class DepthNode:
             time.sleep(0.005)
         if T is None:
             self.warn("pose", "depth_node: no pose at %.3f on %s (have %d poses, latest %s); "
-                      "frame skipped" % (t, self.p["pose_source_topic"], len(self.pose_cache),
+                      "frame skipped" % (t, self.cfg.pose_source_topic, len(self.pose_cache),
                                          self.pose_cache.latest))
         return T
 
     def process(self, left, right, linfo, rinfo, t_recv):
         """Stage 1 of one pair: stamp checks, camera, conversion, ELAS; queued for stage 2."""
-        from ..camera import CalibrationError
-        from ..conversions import ConversionError
         stamp = left.header.stamp
         t = stamp.to_sec()
         state = self.guard.check(t)
@@ -404,7 +369,7 @@ class DepthNode:
             self.warn(key, "depth_node: input skipped: %s" % e)
             self.counts["skipped"] += 1
             return
-        frame = self.p["camera_frame"] or left.header.frame_id or "camera_left_optical_frame"
+        frame = self.cfg.camera_frame or left.header.frame_id or "camera_left_optical_frame"
         # ELAS here, without the pose: the pose node is still tracking this frame, and the filter
         # stage waits for its pose while this stage matches the next pair
         try:
@@ -422,9 +387,6 @@ class DepthNode:
 
     def filter_and_publish(self, header, frame, meas, depth, generation):
         """Stage 2 of one pair: its pose (waiting for the pose node), the filter, publishing."""
-        import rospy
-        from ..conversions import arrays_to_pointcloud2, numpy_to_image
-        from ..depth import render_depth
         stamp = header.stamp
         t = stamp.to_sec()
         if self._from_the_future(t):   # matched before the clock jumped back
@@ -469,7 +431,6 @@ class DepthNode:
         self.last_latency = (rospy.Time.now() - stamp).to_sec()
 
     def _diagnostics(self, stat):
-        from diagnostic_msgs.msg import DiagnosticStatus
         c = self.counts
         dt = max(1e-6, time.monotonic() - self.t_start)
         level = DiagnosticStatus.OK
@@ -495,17 +456,10 @@ class DepthNode:
 
 
 def main():
-    import rospy
-    from ..depth import DEPTH_DEFAULTS
     rospy.init_node("depth_node")
-    from .memdebug import start_from_env
     start_from_env("depth_node")   # MDR_MEMDEBUG=FILE: memory stats for long runs (memdebug.py)
-    defaults = dict(DEFAULTS)
-    defaults.update(DEPTH_DEFAULTS)
-    p = get_params(defaults)
-    unknown_params(defaults, "depth_node")
     try:
-        DepthNode(p)
+        DepthNode(*read_config("depth_node", *NODE_CONFIGS["depth"]))
     except Exception as e:  # bad parameters: say which, and stay up so the launch keeps running
         rospy.logerr("depth_node: cannot start: %s", e)
     rospy.spin()

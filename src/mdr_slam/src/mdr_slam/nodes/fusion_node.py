@@ -24,7 +24,7 @@ A thin shell around :class:`mdr_slam.fusion.VoxelMap` (paper section 3.4):
   warning (tf2 clears its own buffer), the map stays; timers survive the jump. Clouds and tf
   stamped more than ``~max_future_stamp`` ahead of the clock (the old lap's last ones, delivered
   after the jump) are dropped: looked up in the new lap, tf interpolated their pose across the
-  jump (measured 0.65 m / 34 deg off; tests/test_time_jump.py).
+  jump (measured 0.65 m / 34 deg off; tests/ros/test_time_jump.py).
 * bad input (malformed/empty clouds, NaN points, absurd depths, missing pose, time going
   backwards) is logged (throttled) and skipped; the node never dies on input.
 """
@@ -34,104 +34,64 @@ import os
 import threading
 import time
 
+import message_filters
 import numpy as np
+import rospy
+import tf2_ros
+from diagnostic_msgs.msg import DiagnosticStatus
+from geometry_msgs.msg import PoseStamped
+from mdr_slam_msgs.msg import KeyFrameArray, TrackingState
+from mdr_slam_msgs.srv import (ExportMesh, ExportMeshResponse, LoadMap, LoadMapResponse, SaveMap,
+                               SaveMapResponse)
+from nav_msgs.msg import OccupancyGrid
+from sensor_msgs.msg import PointCloud2
+from std_srvs.srv import Trigger, TriggerResponse
 
-from .common import (ClockWatch, StampGuard, Throttled, get_params, skip_future_stamp,
-                     transform_listener, unknown_params)
+from ..conversions import (ConversionError, arrays_to_pointcloud2, matrix_to_pose,
+                           pointcloud2_to_arrays, pose_stamped_to_matrix, pose_to_matrix,
+                           transform_stamped_to_matrix)
+from ..fusion import VoxelMap, VoxelMapConfig, grid_origin_T, limit_openmp_threads
+from ..fusion.map_io import load_dense_map, save_dense_map
+from ..fusion.mesh import default_K, mesh_from_map, write_mesh
+from ..geometry import relative_motion
+from ..io.atomic import remove_stale_temporaries
+from ..io.map_dir import MapPathError, default_map_dir, map_files, resolve_map_path
+from ..nav import map_min_confidence, map_products
+from .common import (ClockWatch, RunMarker, StampGuard, Throttled, read_config, skip_future_stamp,
+                     transform_listener)
+from .config import NODE_CONFIGS, FusionNodeConfig
 from .health import ProcessHealth, update_diagnostics
+from .memdebug import start_from_env
 
-DEFAULTS = {
-    "map_frame": "map",
-    "cloud_topic": "mdr/depth/points",
-    "pose_topic": "mdr/pose",
-    "keyframes_topic": "mdr/keyframes",
-    "tracking_state_topic": "mdr/tracking_state",    # "" = do not gate on tracking state
-    "pose_source": "tf",            # tf: tf2 map <- cloud frame at the stamp; topic: /mdr/pose
-    "tf_timeout": 0.1,              # s to wait for the transform at the cloud's stamp
-    "max_future_stamp": 1.0,        # s (sim time): clouds and tf stamped further ahead of the clock are dropped
-    "sync_tolerance": 0.05,         # s between a cloud and its pose (pose_source=topic)
-    "sync_queue_size": 30,
-    "cloud_queue": 10,              # clouds waiting while the node is busy (a keyframe correction,
-                                    #   a map publish); older ones are dropped by rospy
-    "anchor_keyframes": True,       # anchor points to keyframes so corrections move them
-    # VoxelMap
-    "voxel_size": 0.02,
-    "radius": 0.0,                  # association radius (m); 0 = voxel_size
-    "normal_angle_deg": 45.0,
-    "normal_radius": 0.0,           # m; 0 = 4 voxels
-    "normal_max_nn": 16,            # normal_method knn only
-    "normal_method": "grid",        # grid: PCA over grid cells of normal_radius; knn: Open3D
-    "merge_duplicates": True,       # fold a surface's stray samples along its normal
-    "dup_normal": 0.0,              # m, along the normal; 0 = 1.5 voxels
-    "dup_lateral": 0.0,             # m, across the normal; 0 = 1 voxel
-    "dup_radius": 0.0,              # m, or closer than this in any direction; 0 = half a voxel
-    "rekey": True,                  # keys follow the running means: one point per voxel and bin
-    "confidence": True,             # false: plain voxel grid (ablation)
-    "min_confidence": 3,
-    "grace": 5.0,
-    "min_span": 0.0,                # s a point must be seen over (first to last sighting) in its grace
-    "min_view_ratio": 0.0,          # > 0: ... and seen in this share of the clouds that had it in view
-    "view_window": 120.0,           # s of views counted per point before the ratio test (>= grace)
-    "view_bin": 0.01,               # direction bin (x/z, y/z) of the in-view test's depth image
-    "view_margin": 0.0,             # m; 0 = 2 voxels
-    "clean_every": 10,              # integrations between cleaning passes (0 = off)
-    "clean_period": 0.0,            # s between cleaning passes (0 = off)
-    "min_depth": 0.1,
-    "max_depth": 10.0,
-    "intensity_field": "intensity",
-    "weight_field": "weight",
-    # output
-    "publish_rate": 1.0,
-    "display_voxel": 0.05,          # m; 0 = publish every map point
-    "display_min_confidence": 3,    # >= grid_min_confidence: move_base's obstacle layer marks these
-    "publish_grid": True,
-    "grid_resolution": 0.05,
-    "grid_z_min": 0.1,
-    "grid_z_max": 1.5,
-    "grid_free_band": 0.3,
-    "grid_up_axis": "z",
-    "grid_min_confidence": 3,
-    # files
-    "map_path": "~/.ros/mdr_map.ply",
-    "load_map": "",
-    "resume": True,                 # reload map_path after an unclean exit (see the module doc)
-    "autosave": True,
-    "autosave_period": 60.0,        # s; 0 = only on shutdown
-    "mesh_path": "~/.ros/mdr_mesh.ply",
-    "mesh_voxel": 0.02,
-    "mesh_width": 640,
-    "mesh_height": 480,
-    "mesh_hfov_deg": 90.0,
-    "mesh_min_confidence": 2,
-    "mesh_max_views": 100,          # camera poses of the run used as TSDF views (auto views if none)
-    "diagnostics_period": 1.0,
-    "omp_threads": 1,               # Open3D OpenMP threads (0 = OpenMP default: all cores)
-}
+POSE_NODE_SERVICE_WAIT = 2.0   # s to wait for the pose node's map service
+
+
+def _is_folder(path: str) -> bool:
+    """A map path without a point-cloud extension names a map folder."""
+    return os.path.splitext(path)[1].lower() not in (".ply", ".pcd")
+
+
 
 
 class FusionNode:
-    def __init__(self, p: dict):
-        import rospy
-        import tf2_ros
-        from nav_msgs.msg import OccupancyGrid
-        from sensor_msgs.msg import PointCloud2
-        from std_srvs.srv import Trigger
-        from mdr_slam_msgs.msg import KeyFrameArray
-        from mdr_slam_msgs.srv import ExportMesh, LoadMap, SaveMap
-        from ..fusion import VoxelMap
-        self.p = p
+    def __init__(self, cfg: FusionNodeConfig, map_cfg: VoxelMapConfig):
+        self.cfg = cfg
+        # what mdr_slam.nav.map_products reads: the display and grid fields, and the map's confidence
+        self.products_params = dict(cfg.to_dict(), confidence=map_cfg.confidence)
         self.closed = False
         self.warn = Throttled()
         self.guard = StampGuard()
-        if p["confidence"] and p["publish_grid"] and \
-                p["display_min_confidence"] < p["grid_min_confidence"]:
+        if map_cfg.confidence and cfg.publish_grid and \
+                cfg.display_min_confidence < cfg.grid_min_confidence:
             rospy.logwarn("fusion_node: display_min_confidence %s < grid_min_confidence %s: "
                           "/mdr/map/points has points the grid does not mark occupied (move_base's "
                           "obstacle layer would mark them and never clear them)",
-                          p["display_min_confidence"], p["grid_min_confidence"])
+                          cfg.display_min_confidence, cfg.grid_min_confidence)
         self.lock = threading.RLock()
-        self.map = VoxelMap.from_config(p)
-        self.map_path = os.path.expanduser(p["map_path"])
+        self.map = VoxelMap(map_cfg)
+        self.map_dir = os.path.expanduser(cfg.map_dir or default_map_dir())
+        # parameters are the operator's (launch file); only service paths are confined
+        self.map_path = resolve_map_path(cfg.map_path, self.map_dir, allow_outside=True)
         self.dirty = True
         self.kf_ids = np.zeros(0, np.int64)
         self.kf_stamps = np.zeros(0)
@@ -144,67 +104,65 @@ class FusionNode:
         self.last_proc = float("nan")
         self.states = []                     # (stamp, TrackingState.state), recent, time-ordered
         self.clock = ClockWatch()            # ROS time jumping back (bag loop): a new timeline
-        self.marker = self.map_path + ".running"
-        self.run_id = str(rospy.get_param("/run_id", ""))
-        path = os.path.expanduser(p["load_map"]) if p["load_map"] else ""
-        if p["resume"] and self._crashed_before():
+        if _is_folder(self.map_path):
+            self.marker = RunMarker(os.path.join(self.map_path, "fusion_node.running"), "fusion_node")
+            autosave_file = map_files(self.map_path)["dense"]
+        else:
+            self.marker = RunMarker(self.map_path + ".running", "fusion_node")
+            autosave_file = self.map_path
+        path = resolve_map_path(cfg.load_map, self.map_dir, True) if cfg.load_map else ""
+        if cfg.resume and self.marker.crashed_before(autosave_file):
             path = self.map_path
             rospy.logwarn("fusion_node: the previous fusion node of this session did not shut down "
                           "cleanly: resuming its autosave %s (integrations of at most the last "
                           "autosave_period = %.1f s before the crash are lost)", path,
-                          p["autosave_period"])
+                          cfg.autosave_period)
         if path:
             try:
-                n = self.map.load(path)
+                n = self.load(path)
                 rospy.loginfo("fusion_node: loaded %d map points from %s", n, path)
             except (IOError, OSError, ValueError) as e:
                 rospy.logerr("fusion_node: could not load map %s: %s (starting empty)", path, e)
-        if p["autosave"]:
-            try:  # "running, not yet saved on a clean exit": what resume looks for after a crash
-                d = os.path.dirname(self.marker)
-                if d and not os.path.isdir(d):
-                    os.makedirs(d)
-                with open(self.marker, "w") as f:
-                    f.write("%s %d\n" % (self.run_id, os.getpid()))
-            except (IOError, OSError) as e:
-                rospy.logwarn("fusion_node: cannot write %s (%s): no resume after a crash",
-                              self.marker, e)
+        # localization never changes a map's files
+        self.autosaving = cfg.autosave and not (cfg.localization and path)
+        if self.autosaving:   # "running, not yet saved on a clean exit": what resume looks for
+            self.marker.write()
+            for f in (autosave_file, autosave_file + ".anchors.json",
+                      os.path.splitext(autosave_file)[0] + ".json"):
+                remove_stale_temporaries(f)
         self.pub_points = rospy.Publisher("mdr/map/points", PointCloud2, queue_size=1, latch=True)
         self.pub_grid = rospy.Publisher("mdr/map/grid", OccupancyGrid, queue_size=1, latch=True)
         self.tf_buffer = tf2_ros.Buffer(cache_time=rospy.Duration(60.0))
-        self.tf_listener = transform_listener(self.tf_buffer, self.p["max_future_stamp"], self.warn,
+        self.tf_listener = transform_listener(self.tf_buffer, self.cfg.max_future_stamp, self.warn,
                                               "fusion_node")
         big = 1 << 26
-        if p["pose_source"] == "topic":
-            import message_filters
-            from geometry_msgs.msg import PoseStamped
-            self.sub_cloud = message_filters.Subscriber(p["cloud_topic"], PointCloud2,
-                                                        queue_size=p["cloud_queue"], buff_size=big)
-            self.sub_pose = message_filters.Subscriber(p["pose_topic"], PoseStamped, queue_size=50)
+        if cfg.pose_source == "topic":
+            self.sub_cloud = message_filters.Subscriber(cfg.cloud_topic, PointCloud2,
+                                                        queue_size=cfg.cloud_queue, buff_size=big)
+            self.sub_pose = message_filters.Subscriber(cfg.pose_topic, PoseStamped, queue_size=50)
             self.sync = message_filters.ApproximateTimeSynchronizer(
-                [self.sub_cloud, self.sub_pose], p["sync_queue_size"], p["sync_tolerance"])
+                [self.sub_cloud, self.sub_pose], cfg.sync_queue_size, cfg.sync_tolerance)
             self.sync.registerCallback(self.on_cloud_pose)
         else:
-            if p["pose_source"] != "tf":
-                rospy.logwarn("fusion_node: unknown pose_source %r, using tf", p["pose_source"])
-            self.sub_cloud = rospy.Subscriber(p["cloud_topic"], PointCloud2, self.on_cloud,
-                                              queue_size=p["cloud_queue"], buff_size=big)
-        self.sub_kf = rospy.Subscriber(p["keyframes_topic"], KeyFrameArray, self.on_keyframes,
+            if cfg.pose_source != "tf":
+                rospy.logwarn("fusion_node: unknown pose_source %r, using tf", cfg.pose_source)
+            self.sub_cloud = rospy.Subscriber(cfg.cloud_topic, PointCloud2, self.on_cloud,
+                                              queue_size=cfg.cloud_queue, buff_size=big)
+        self.sub_kf = rospy.Subscriber(cfg.keyframes_topic, KeyFrameArray, self.on_keyframes,
                                        queue_size=20)
-        if p["tracking_state_topic"]:
-            from mdr_slam_msgs.msg import TrackingState
-            self.sub_state = rospy.Subscriber(p["tracking_state_topic"], TrackingState,
+        if cfg.tracking_state_topic:
+            self.sub_state = rospy.Subscriber(cfg.tracking_state_topic, TrackingState,
                                               self.on_state, queue_size=50)
         self.srvs = [rospy.Service("~save_map", SaveMap, self.srv_save),
                      rospy.Service("~load_map", LoadMap, self.srv_load),
                      rospy.Service("~reset", Trigger, self.srv_reset),
                      rospy.Service("~export_mesh", ExportMesh, self.srv_mesh)]
         self.timers = []
-        if p["publish_rate"] > 0:
-            self.timers.append(rospy.Timer(rospy.Duration(1.0 / p["publish_rate"]), self.on_publish,
+        if cfg.publish_rate > 0:
+            self.timers.append(rospy.Timer(rospy.Duration(1.0 / cfg.publish_rate), self.on_publish,
                                            reset=True))  # reset: survive sim time jumping back
-        if p["autosave"] and p["autosave_period"] > 0:
-            self.timers.append(rospy.Timer(rospy.Duration(p["autosave_period"]), self.on_autosave,
+        if self.autosaving and cfg.autosave_period > 0:
+            self.timers.append(rospy.Timer(rospy.Duration(cfg.autosave_period), self.on_autosave,
                                            reset=True))
         self.diag = None
         self.health = ProcessHealth()
@@ -213,20 +171,10 @@ class FusionNode:
             self.diag = diagnostic_updater.Updater()
             self.diag.setHardwareID("mdr_slam")
             self.diag.add("fusion", self.diagnostics)
-            self.timers.append(rospy.Timer(rospy.Duration(p["diagnostics_period"]),
+            self.timers.append(rospy.Timer(rospy.Duration(cfg.diagnostics_period),
                                            lambda _e: update_diagnostics(self.diag), reset=True))
         except ImportError:
             rospy.logwarn("fusion_node: diagnostic_updater missing; no diagnostics")
-
-    def _crashed_before(self) -> bool:
-        """The marker of a fusion node of this ROS session (same /run_id) that never exited
-        cleanly, and its autosave, exist."""
-        try:
-            with open(self.marker) as f:
-                words = f.read().split()
-        except (IOError, OSError):
-            return False
-        return bool(words) and words[0] == self.run_id and os.path.exists(self.map_path)
 
     # ------------------------------------------------------------------ input
     def on_state(self, msg):
@@ -260,18 +208,15 @@ class FusionNode:
                   "and tracking states reset, the map (%d points) stays" % (stamp, n, len(self.map)))
 
     def on_cloud(self, msg):
-        import rospy
-        import tf2_ros
-        from ..conversions import transform_stamped_to_matrix, ConversionError
         if self._from_the_future(msg):
             return
         try:
-            ts = self.tf_buffer.lookup_transform(self.p["map_frame"], msg.header.frame_id,
-                                                 msg.header.stamp, rospy.Duration(self.p["tf_timeout"]))
+            ts = self.tf_buffer.lookup_transform(self.cfg.map_frame, msg.header.frame_id,
+                                                 msg.header.stamp, rospy.Duration(self.cfg.tf_timeout))
             T = transform_stamped_to_matrix(ts)
         except tf2_ros.TransformException as e:  # lookup, connectivity, extrapolation, timeout
             self.warn("tf", "no pose for the cloud at %.3f (%s <- %r): %s; skipped" % (
-                msg.header.stamp.to_sec(), self.p["map_frame"], msg.header.frame_id, e))
+                msg.header.stamp.to_sec(), self.cfg.map_frame, msg.header.frame_id, e))
             return
         except ConversionError as e:
             self.warn("tfbad", "bad transform for the cloud: %s; skipped" % e)
@@ -285,11 +230,10 @@ class FusionNode:
     def _from_the_future(self, msg) -> bool:
         """A cloud stamped ahead of the clock: the old lap's last cloud after a bag loop, whose
         pose lookup would interpolate across the jump. Skipped."""
-        return skip_future_stamp(msg.header.stamp.to_sec(), self.p["max_future_stamp"], self.warn,
+        return skip_future_stamp(msg.header.stamp.to_sec(), self.cfg.max_future_stamp, self.warn,
                                  "cloud")
 
     def on_cloud_pose(self, cloud, pose):
-        from ..conversions import pose_stamped_to_matrix, ConversionError
         if self._from_the_future(cloud):
             return
         try:
@@ -297,15 +241,13 @@ class FusionNode:
         except ConversionError as e:
             self.warn("posebad", "bad pose paired with the cloud: %s; skipped" % e)
             return
-        if pose.header.frame_id and pose.header.frame_id != self.p["map_frame"]:
+        if pose.header.frame_id and pose.header.frame_id != self.cfg.map_frame:
             self.warn("poseframe", "pose frame %r is not %r; skipped" % (
-                pose.header.frame_id, self.p["map_frame"]))
+                pose.header.frame_id, self.cfg.map_frame))
             return
         self.integrate(cloud, T)
 
     def integrate(self, msg, T):
-        import rospy
-        from ..conversions import pointcloud2_to_arrays, ConversionError
         t0 = time.monotonic()
         self.n_received += 1
         stamp = msg.header.stamp.to_sec()
@@ -334,8 +276,8 @@ class FusionNode:
             self.warn("lost", "tracking %s at the cloud's stamp %.3f; skipped (no smeared map)" % (
                 "LOST" if tracking == 2 else "not initialised", stamp))
             return
-        inten = arr.get(self.p["intensity_field"])
-        w = arr.get(self.p["weight_field"])
+        inten = arr.get(self.cfg.intensity_field)
+        w = arr.get(self.cfg.weight_field)
         try:
             with self.lock:
                 if self.closed:
@@ -359,7 +301,7 @@ class FusionNode:
 
     def _anchor_for(self, stamp):
         """The latest keyframe not newer than the cloud, and its current pose (under the lock)."""
-        if not self.p["anchor_keyframes"] or not len(self.kf_ids):
+        if not self.cfg.anchor_keyframes or not len(self.kf_ids):
             return None, None
         k = np.nonzero(self.kf_stamps <= stamp + 1e-6)[0]
         if not len(k):
@@ -368,7 +310,6 @@ class FusionNode:
         return anchor, self.kf_poses[anchor]
 
     def _remember_view(self, T):
-        from ..geometry import relative_motion
         if self.views:
             d, a = relative_motion(self.views[-1], T)
             if d < 0.2 and np.degrees(a) < 10.0:
@@ -378,7 +319,6 @@ class FusionNode:
             self.views = self.views[::2]
 
     def on_keyframes(self, msg):
-        from ..conversions import pose_to_matrix, ConversionError
         corr = {}
         for kf in msg.keyframes:  # one entry per keyframe (hundreds at most), not per point
             try:
@@ -401,14 +341,12 @@ class FusionNode:
             known = {k: T for k, (_, T) in corr.items() if k in self.map.anchors}
             n = self.map.apply_corrections(known) if known else 0
         if n:
-            import rospy
             self.dirty = True
             rospy.loginfo("fusion_node: %d map points follow corrected keyframes (reason %d)",
                           n, msg.reason)
 
     # ------------------------------------------------------------------ output
     def on_publish(self, _event=None):
-        import rospy
         if not self.dirty or self.closed:
             return
         self.dirty = False
@@ -418,34 +356,28 @@ class FusionNode:
             self.warn("publish", "publishing the map failed: %r" % (e,), "err")
 
     def publish(self):
-        import rospy
-        from nav_msgs.msg import OccupancyGrid
-        from ..conversions import arrays_to_pointcloud2, matrix_to_pose
-        from ..fusion import grid_origin_T
-        from ..nav import map_min_confidence, map_products
-        p = self.p
+        cfg = self.cfg
         with self.lock:  # only the copy holds the lock; integration goes on meanwhile
-            c = self.map.to_cloud(min(map_min_confidence(p)))
+            c = self.map.to_cloud(min(map_min_confidence(self.products_params)))
         stamp = rospy.Time.now()
-        pts, grid = map_products(c, p)   # the cloud and the grid of the same snapshot
+        pts, grid = map_products(c, self.products_params)   # cloud and grid of one snapshot
         self.pub_points.publish(arrays_to_pointcloud2(
             {"intensity": np.asarray(pts["intensity"], np.float32),
              "confidence": np.asarray(pts["confidence"], np.float32)},
-            stamp, p["map_frame"], xyz=pts["xyz"]))
+            stamp, cfg.map_frame, xyz=pts["xyz"]))
         if grid is not None:
             data, origin, res = grid
             msg = OccupancyGrid()
             msg.header.stamp = stamp
-            msg.header.frame_id = p["map_frame"]
+            msg.header.frame_id = cfg.map_frame
             msg.info.map_load_time = stamp
             msg.info.resolution = res
             msg.info.height, msg.info.width = data.shape
-            msg.info.origin = matrix_to_pose(grid_origin_T(origin, p["grid_up_axis"], p["grid_z_min"]))
+            msg.info.origin = matrix_to_pose(grid_origin_T(origin, cfg.grid_up_axis, cfg.grid_z_min))
             msg.data = data.reshape(-1).tolist()
             self.pub_grid.publish(msg)
 
     def diagnostics(self, stat):
-        from diagnostic_msgs.msg import DiagnosticStatus
         now = time.monotonic()
         rate = len([t for t in self.rate_window if now - t < 10.0]) / 10.0
         n = len(self.map)
@@ -478,43 +410,73 @@ class FusionNode:
 
     # ------------------------------------------------------------------ files and services
     def save(self, path=None, fmt=""):
-        path = os.path.expanduser(path or self.map_path)
+        """The map into a map folder (``dense_map.ply`` + its description) or, for a path with a
+        .ply/.pcd extension or a ``fmt``, one file; ``path`` absolute (default ``map_path``)."""
+        path = path or self.map_path
+        if _is_folder(path) and not fmt:
+            with self.lock:
+                return path, save_dense_map(self.map, path)
         if fmt:
             root, ext = os.path.splitext(path)
             if ext.lower() != "." + fmt.lower():
                 path = root + "." + fmt.lower()
-        elif os.path.splitext(path)[1].lower() not in (".ply", ".pcd"):
-            path += ".ply"
         with self.lock:
             n = self.map.save(path)
         return path, n
 
+    def load(self, path: str, append: bool = False) -> int:
+        """A map folder's dense map or a .ply/.pcd file into the map (ValueError when bad)."""
+        with self.lock:
+            if os.path.isdir(path):
+                n = load_dense_map(self.map, path, append=append)
+            else:
+                n = self.map.load(path, append=append)
+        self.dirty = True
+        return n
+
+    def _service_path(self, path: str) -> str:
+        return resolve_map_path(path.strip() or self.cfg.map_path, self.map_dir,
+                                self.cfg.allow_any_map_path)
+
+    def _pose_node_call(self, name: str, srv_type, *args) -> str:
+        """The pose node's map service ``name`` with ``args``: a note for the reply."""
+        if not self.cfg.pose_node:
+            return ""
+        service = rospy.resolve_name(self.cfg.pose_node + "/" + name)
+        try:
+            rospy.wait_for_service(service, timeout=POSE_NODE_SERVICE_WAIT)
+            res = rospy.ServiceProxy(service, srv_type)(*args)
+        except (rospy.ROSException, rospy.ServiceException) as e:
+            return "; sparse map: no %s (%s)" % (service, e)
+        return "; sparse map: %s" % res.message
+
     def srv_save(self, req):
-        from mdr_slam_msgs.srv import SaveMapResponse
         fmt = (req.format or "").strip().lower()
         if fmt not in ("", "ply", "pcd"):
             return SaveMapResponse(False, "format must be ply or pcd, got %r" % req.format, "", 0)
         try:
-            path, n = self.save(req.path.strip() or None, fmt)
-        except (IOError, OSError, ValueError) as e:
+            path, n = self.save(self._service_path(req.path), fmt)
+        except (MapPathError, IOError, OSError, ValueError) as e:
             return SaveMapResponse(False, "could not save: %s" % e, "", 0)
-        return SaveMapResponse(True, "saved %d points" % n, path, n)
+        note = self._pose_node_call("save_map", SaveMap, path, "") if _is_folder(path) and not fmt else ""
+        return SaveMapResponse(True, "saved %d points%s" % (n, note), path, n)
 
     def srv_load(self, req):
-        from mdr_slam_msgs.srv import LoadMapResponse
-        path = os.path.expanduser(req.path.strip())
-        if not path or not os.path.exists(path):
-            return LoadMapResponse(False, "no such file: %r" % req.path, len(self.map))
         try:
-            with self.lock:
-                n = self.map.load(path, append=req.append)
+            path = self._service_path(req.path)
+        except MapPathError as e:
+            return LoadMapResponse(False, str(e), len(self.map))
+        if not os.path.exists(path):
+            return LoadMapResponse(False, "no such map: %r" % req.path, len(self.map))
+        try:
+            n = self.load(path, append=req.append)
         except (IOError, OSError, ValueError) as e:
             return LoadMapResponse(False, "could not load %s: %s" % (path, e), len(self.map))
-        self.dirty = True
-        return LoadMapResponse(True, "map has %d points" % n, n)
+        note = self._pose_node_call("load_map", LoadMap, path, False) \
+            if os.path.isdir(path) and not req.append else ""
+        return LoadMapResponse(True, "map has %d points%s" % (n, note), n)
 
     def srv_reset(self, _req):
-        from std_srvs.srv import TriggerResponse
         with self.lock:
             self.map.reset()
         self.guard = StampGuard()
@@ -523,23 +485,21 @@ class FusionNode:
         return TriggerResponse(True, "map cleared")
 
     def srv_mesh(self, req):
-        from mdr_slam_msgs.srv import ExportMeshResponse
-        from ..fusion.mesh import default_K, mesh_from_map, write_mesh
-        p = self.p
-        path = os.path.expanduser(req.path.strip() or p["mesh_path"])
-        voxel = float(req.voxel_length) if req.voxel_length > 0 else p["mesh_voxel"]
+        cfg = self.cfg
+        path = os.path.expanduser(req.path.strip() or cfg.mesh_path)
+        voxel = float(req.voxel_length) if req.voxel_length > 0 else cfg.mesh_voxel
         with self.lock:
-            cloud = self.map.to_cloud(p["mesh_min_confidence"] if p["confidence"] else 0)
+            cloud = self.map.to_cloud(cfg.mesh_min_confidence if self.map.confidence else 0)
             views = list(self.views) or None
-        if views and len(views) > p["mesh_max_views"]:
+        if views and len(views) > cfg.mesh_max_views:
             # every view renders the whole map: bound the export time
-            views = [views[i] for i in np.linspace(0, len(views) - 1, p["mesh_max_views"]).astype(int)]
+            views = [views[i] for i in np.linspace(0, len(views) - 1, cfg.mesh_max_views).astype(int)]
         if len(cloud["x"]) == 0:
             return ExportMeshResponse(False, "the map is empty", "", 0, 0)
         try:
-            K = default_K(p["mesh_width"], p["mesh_height"], p["mesh_hfov_deg"])
-            mesh, nv = mesh_from_map(cloud, views, K, p["mesh_width"], p["mesh_height"], voxel,
-                                     max(voxel, p["voxel_size"]), 0, p["grid_up_axis"])
+            K = default_K(cfg.mesh_width, cfg.mesh_height, cfg.mesh_hfov_deg)
+            mesh, nv = mesh_from_map(cloud, views, K, cfg.mesh_width, cfg.mesh_height, voxel,
+                                     max(voxel, self.map.voxel_size), 0, cfg.grid_up_axis)
             if len(mesh.triangles) == 0:
                 return ExportMeshResponse(False, "the TSDF produced no surface", "", 0, 0)
             n_v, n_t = write_mesh(path, mesh)
@@ -548,7 +508,6 @@ class FusionNode:
         return ExportMeshResponse(True, "%d views" % nv, path, n_v, n_t)
 
     def on_autosave(self, _event=None):
-        import rospy
         if len(self.map) == 0:
             return
         try:
@@ -563,11 +522,11 @@ class FusionNode:
             t.shutdown()
         with self.lock:
             try:
-                if self.p["autosave"] and len(self.map):
+                if self.autosaving and len(self.map):
                     path, n = self.save()
                     print("fusion_node: saved %d map points to %s" % (n, path), flush=True)
-                if os.path.exists(self.marker):
-                    os.unlink(self.marker)  # a clean exit: nothing to resume
+                if self.autosaving:
+                    self.marker.clear()  # a clean exit: nothing to resume
             except Exception as e:  # report, never raise while shutting down
                 print("fusion_node: autosave failed: %r" % (e,), flush=True)
             self.closed = True
@@ -575,19 +534,15 @@ class FusionNode:
 
 
 def main():
-    import rospy
-    from ..fusion import limit_openmp_threads
     rospy.init_node("fusion_node")
-    from .memdebug import start_from_env
     start_from_env("fusion_node")   # MDR_MEMDEBUG=FILE (%n: node name): memory stats, memdebug.py
-    p = get_params(DEFAULTS)
-    unknown_params(DEFAULTS, "fusion_node")
-    if p["omp_threads"] > 0:
-        limit_openmp_threads(p["omp_threads"])
-    node = FusionNode(p)
+    cfg, map_cfg = read_config("fusion_node", *NODE_CONFIGS["fusion"])
+    if cfg.omp_threads > 0:
+        limit_openmp_threads(cfg.omp_threads)
+    node = FusionNode(cfg, map_cfg)
     rospy.loginfo("fusion_node: fusing %s with poses from %s into %s (voxel %.3f m, confidence %s)",
-                  node.p["cloud_topic"], node.p["pose_source"], node.p["map_frame"],
-                  node.p["voxel_size"], node.p["confidence"])
+                  cfg.cloud_topic, cfg.pose_source, cfg.map_frame, map_cfg.voxel_size,
+                  map_cfg.confidence)
     try:
         rospy.spin()
     finally:

@@ -6,46 +6,45 @@
 """
 from __future__ import annotations
 
+import os
 import threading
+import time
+from collections import deque
 
+import cv2
+import diagnostic_updater
 import numpy as np
+import rospy
+import tf2_ros
+from diagnostic_msgs.msg import DiagnosticStatus
+from geometry_msgs.msg import PoseStamped
+from mdr_slam_msgs.msg import KeyFrame, KeyFrameArray, TrackingState
+from mdr_slam_msgs.srv import SaveTrajectory, SaveTrajectoryResponse
+from nav_msgs.msg import Odometry, Path
 
-from ..conversions import image_msg_to_mono8 as to_mono8
+from ..calib import load_stereo_calibration
+from ..camera import CalibrationError, StereoCamera, images_are_rectified
+from ..conversions import (ConversionError, camera_info_to_model, image_msg_to_mono8 as to_mono8,
+                           matrix_to_pose, matrix_to_pose_stamped, matrix_to_transform_stamped,
+                           pose_stamped_to_matrix, transform_stamped_to_matrix)
+from ..geometry import body_twist, inv_T, is_valid_T, parse_transform, rotation_angle
+from ..io.trajectory import write_kitti_poses, write_tum
+from ..pose import System, TrackerConfig, make_system
+from ..pose.map_io import PoseMapError
+from .common import (ClockWatch, StampGuard, Throttled, frame_root, read_config,
+                     skip_future_stamp, transform_listener)
+from .config import NODE_CONFIGS, PoseNodeConfig
+from .health import ProcessHealth, RateWindow, update_diagnostics
+from .pose_map_services import PoseMapServices
 from .stereo_input import StereoInput
-from .common import (ClockWatch, StampGuard, Throttled, frame_root, get_params,
-                     parse_transform, skip_future_stamp, transform_listener, unknown_params)
 
-DEFAULTS = {
-    "source": "orb",               # orb (stereo tracking) or groundtruth (relay a ground-truth pose)
-    "map_frame": "map",            # tf frames (REP-105)
-    "odom_frame": "odom",
-    "base_frame": "base_link",
-    "camera_frame": "",            # empty: the left image's frame_id (groundtruth: DEFAULT_CAMERA_FRAME)
-    "base_to_camera": "",          # T_base_camera "x y z qx qy qz qw", published only when tf has none
-    "publish_tf": True,            # map -> odom -> base_link (false: topics only)
-    "publish_odom_tf": "auto",     # auto: odom -> base_link unless the robot's odometry publishes it
-    "path_max_length": 100000,     # /mdr/path keeps at most this many poses (the oldest go)
-    "path_period": 0.5,            # /mdr/path at most this often (s): its size grows with the run
-    "path_min_translation": 0.05,  # a pose joins /mdr/path once the camera moved this far (m) ...
-    "path_min_rotation_deg": 5.0,  # ... or turned this much since the last one (0 and 0: every pose)
-    "blas_threads": 1,             # BLAS threads of this process (0: library default; OpenBLAS's 2nd spins)
-    "cv_threads": 1,               # OpenCV threads (0: library default; left/right ORB already run in parallel)
-    "calib": "",                   # calibration file(s) instead of camera_info
-    "image_transport": "raw",      # raw (sensor_msgs/Image) or compressed (<image topic>/compressed)
-    "rectified": "auto",           # auto: image_rect* topics and distortion-free camera_info are rectified
-    "sync_queue_size": 10,         # message_filters queue of the stereo synchronizer
-    "sync_tolerance": 0.0,         # s between the stamps of a stereo pair; 0 = 0.4 of the frame period
-    "max_pending": 2,              # stereo pairs waiting for the tracker; older ones are dropped
-    "pipeline_frames": True,       # make frame N+1 (ORB, stereo) while frame N is being tracked
-                                   # (max_pending waiting in each thread)
-    "threads": True,               # LocalMapping/LoopClosing in background threads
-    "trajectory_path": "",         # written on shutdown when set (.txt = TUM, .kitti = KITTI)
-    "trajectory_format": "",       # tum or kitti; empty = from the extension (default tum)
-    "diagnostics_period": 1.0,     # s between /diagnostics messages
-    "max_future_stamp": 1.0,       # s (sim time): pairs and poses stamped further ahead of the clock are dropped
-                                   # (a looping bag's clock jumps back; 0 = no check)
-}
-
+PATH_MAX_LENGTH = 100000    # /mdr/path keeps at most this many poses (the oldest go)
+PATH_PERIOD = 0.5           # s: /mdr/path at most this often (its size grows with the run)
+PATH_MIN_TRANSLATION = 0.05  # m: a pose joins /mdr/path once the camera moved this far ...
+PATH_MIN_ROTATION_DEG = 5.0  # ... or turned this much since the last one
+PIPELINE_FRAMES = True      # make frame N+1 (ORB, stereo) while frame N is being tracked
+BLAS_THREADS = 1            # OpenBLAS's second thread mostly spins on the small BA/PnP products
+CV_THREADS = 1              # left and right ORB already run in two threads
 DEFAULT_CAMERA_FRAME = "camera_left_optical_frame"   # the simulator's; when nothing names one
 BASE_TF_WAIT = 1.0        # s (wall) the first frame waits for tf base <- camera before a fallback ...
 BASE_TF_WAIT_GIVEN = 0.2  # ... and when ~base_to_camera gives one (then tf is only checked)
@@ -79,32 +78,28 @@ class PoseRelay:
     re-sent at MAP_ODOM_RATE; otherwise map -> odom (loop-closure jumps) and odom -> base_link.
     """
 
-    def __init__(self, p: dict):
-        import rospy
-        import tf2_ros
-        from geometry_msgs.msg import PoseStamped
-        from nav_msgs.msg import Odometry, Path
+    def __init__(self, p: PoseNodeConfig):
         self.p = p
         self.T_base_cam = None             # known once the camera frame is resolved in tf
         self.camera_frame = None
         self.pub_pose = rospy.Publisher("mdr/pose", PoseStamped, queue_size=10)
         self.pub_odom = rospy.Publisher("mdr/odom", Odometry, queue_size=10)
         self.pub_path = rospy.Publisher("mdr/path", Path, queue_size=1, latch=True)
-        self.tf = tf2_ros.TransformBroadcaster() if p["publish_tf"] else None
-        self.static_tf = tf2_ros.StaticTransformBroadcaster() if p["publish_tf"] else None
+        self.tf = tf2_ros.TransformBroadcaster() if p.publish_tf else None
+        self.static_tf = tf2_ros.StaticTransformBroadcaster() if p.publish_tf else None
         self.path = Path()
-        self.path.header.frame_id = p["map_frame"]
+        self.path.header.frame_id = p.map_frame
         self._path_sent = -1e9             # monotonic time of the last /mdr/path
         self._path_dirty = False
         self._path_last = None             # T_map_cam of the last pose put on /mdr/path
         self._path_lock = threading.Lock()   # the timer thread publishes it too
-        if float(p.get("path_period", 0)) > 0:   # the last poses of a burst go out too
-            self._path_timer = rospy.Timer(rospy.Duration(float(p["path_period"])),
+        if PATH_PERIOD > 0:   # the last poses of a burst go out too
+            self._path_timer = rospy.Timer(rospy.Duration(PATH_PERIOD),
                                            lambda _e: self._flush_path(), reset=True)
         self.guard = StampGuard()
         self.clock = ClockWatch()          # ROS time jumping back (bag loop): a new timeline
         self.warn = Throttled()
-        mode = str(p.get("publish_odom_tf", "auto")).lower()
+        mode = str(p.publish_odom_tf).lower()
         if mode not in ("auto", "true", "false"):
             rospy.logerr("pose_node: ~publish_odom_tf is auto, true or false, not %r: auto", mode)
             mode = "auto"
@@ -113,7 +108,7 @@ class PoseRelay:
         self._last_odom_pose = None        # (stamp s, T_map_base) for the twist
         self._last_map_odom = None         # T_map_odom re-sent by the timer (wheel odometry)
         self.tf_buffer = tf2_ros.Buffer(cache_time=rospy.Duration(30.0))
-        self.tf_listener = transform_listener(self.tf_buffer, float(p["max_future_stamp"]),
+        self.tf_listener = transform_listener(self.tf_buffer, float(p.max_future_stamp),
                                               self.warn, "pose_node", self._on_tf)
         if self.tf is not None:
             self._map_odom_timer = rospy.Timer(rospy.Duration(1.0 / MAP_ODOM_RATE),
@@ -123,35 +118,29 @@ class PoseRelay:
     # ------------------------------------------------------------------ frames
     def _on_tf(self, tr, authority: str) -> None:
         """The robot's odometry publishes odom -> base_link: leave it that transform."""
-        import rospy
         if self.wheel_odom or self.odom_mode != "auto":
             return
-        if tr.header.frame_id.lstrip("/") == self.p["odom_frame"] and \
-                tr.child_frame_id.lstrip("/") == self.p["base_frame"] and \
+        if tr.header.frame_id.lstrip("/") == self.p.odom_frame and \
+                tr.child_frame_id.lstrip("/") == self.p.base_frame and \
                 authority != rospy.get_name():
             self.wheel_odom = True
             rospy.loginfo("pose_node: %s publishes %s -> %s (wheel odometry): publishing only "
-                          "%s -> %s", authority, self.p["odom_frame"], self.p["base_frame"],
-                          self.p["map_frame"], self.p["odom_frame"])
+                          "%s -> %s", authority, self.p.odom_frame, self.p.base_frame,
+                          self.p.map_frame, self.p.odom_frame)
 
     def resolve_camera(self, frame: str) -> bool:
         """Find T_base_cam for the camera frame ``frame`` (True once known). tf first, waiting up
         to BASE_TF_WAIT s on the first frame (a bag's /tf_static, robot_state_publisher starting);
         without it the user's ``base_to_camera`` or identity is published, from base to the root
         of the camera's tree."""
-        import time
-        import rospy
-        import tf2_ros
-        from ..conversions import matrix_to_transform_stamped, transform_stamped_to_matrix
-        from ..geometry import inv_T
         if self.T_base_cam is not None:
             if frame != self.camera_frame:
                 self.warn("camframe", "pose_node: image frame_id %r differs from %r (the first "
                           "one's); kept %r" % (frame, self.camera_frame, self.camera_frame))
             return True
         p = self.p
-        base = p["base_frame"]
-        given = bool(str(p["base_to_camera"]).strip())
+        base = p.base_frame
+        given = bool(str(p.base_to_camera).strip())
         deadline = time.monotonic() + (BASE_TF_WAIT_GIVEN if given else BASE_TF_WAIT)
         while True:
             try:
@@ -163,7 +152,7 @@ class PoseRelay:
                 if time.monotonic() > deadline or rospy.is_shutdown():
                     break
                 time.sleep(0.05)
-        T = parse_transform(p["base_to_camera"])
+        T = parse_transform(p.base_to_camera)
         root = frame_root(self.tf_buffer, frame)
         T_root = np.eye(4)
         if root != frame:   # the camera has a tree of its own (e.g. a driver's): attach its root
@@ -185,35 +174,26 @@ class PoseRelay:
     def from_the_future(self, t: float, what: str) -> bool:
         """A message stamped ahead of the clock (the old lap's last ones after a bag loop): its
         pose would go out into the new lap's tf as a stale entry. Skipped."""
-        return skip_future_stamp(t, float(self.p["max_future_stamp"]), self.warn, what)
+        return skip_future_stamp(t, float(self.p.max_future_stamp), self.warn, what)
 
     # ------------------------------------------------------------------ diagnostics
     def _init_diagnostics(self) -> None:
         """/diagnostics "pose_node: pose": rate, latency, drops, tracking state, CPU, RSS."""
-        import rospy
-        from .health import ProcessHealth, RateWindow, update_diagnostics
         self.health = ProcessHealth()
         self.rate = RateWindow(10.0)
         self.n_published = 0
         self.last_latency = float("nan")
-        self.tracking = {"state": "GROUNDTRUTH" if self.p.get("source") == "groundtruth"
+        self.tracking = {"state": "GROUNDTRUTH" if self.p.source == "groundtruth"
                          else "NOT_INITIALIZED", "time_ms": float("nan"), "lost": 0,
                          "keyframes": 0, "loop_closures": 0, "last_ok": None}
-        self.diag = None
-        try:
-            import diagnostic_updater
-        except ImportError:
-            rospy.logwarn("pose_node: diagnostic_updater missing; no diagnostics")
-            return
         self.diag = diagnostic_updater.Updater()
         self.diag.setHardwareID("mdr_slam")
         self.diag.add("pose", self.diagnostics)
-        self.diag_timer = rospy.Timer(rospy.Duration(float(self.p.get("diagnostics_period", 1.0))),
+        self.diag_timer = rospy.Timer(rospy.Duration(float(self.p.diagnostics_period)),
                                       lambda _e: update_diagnostics(self.diag), reset=True)
 
     def note_tracking(self, res) -> None:
         """Record one tracking result (OrbNode) for the diagnostics."""
-        import rospy
         t = self.tracking
         t["state"], t["time_ms"] = str(res.state), float(res.time_ms)
         t["keyframes"], t["loop_closures"] = int(res.n_keyframes), int(res.n_loop_closures)
@@ -223,8 +203,6 @@ class PoseRelay:
             t["last_ok"] = rospy.Time.now()
 
     def diagnostics(self, stat):
-        import rospy
-        from diagnostic_msgs.msg import DiagnosticStatus
         t = self.tracking
         rate = self.rate.rate()
         level, text = DiagnosticStatus.OK, "tracking %s" % t["state"]
@@ -254,13 +232,12 @@ class PoseRelay:
         return stat
 
     def _flush_path(self, throttled: bool = False) -> None:
-        """Publish /mdr/path when it changed, at most every ``path_period`` s when throttled
+        """Publish /mdr/path when it changed, at most every ``PATH_PERIOD`` s when throttled
         (serializing thousands of poses on every frame would cost the tracker its CPU)."""
-        import time
         with self._path_lock:
             now = time.monotonic()
             if not self._path_dirty or (throttled and now - self._path_sent <
-                                        float(self.p.get("path_period", 0))):
+                                        PATH_PERIOD):
                 return
             self._path_dirty = False
             self._path_sent = now
@@ -272,11 +249,10 @@ class PoseRelay:
         instead of with the path (36 k poses after 30 min at 20 Hz, re-serialized every period)."""
         last = self._path_last
         if last is not None:
-            from ..geometry import rotation_angle
             moved = float(np.linalg.norm(T[:3, 3] - last[:3, 3]))
             turned = np.degrees(rotation_angle(last[:3, :3].T @ T[:3, :3]))
-            if moved < float(self.p.get("path_min_translation", 0.0)) and \
-                    turned < float(self.p.get("path_min_rotation_deg", 0.0)):
+            if moved < PATH_MIN_TRANSLATION and \
+                    turned < PATH_MIN_ROTATION_DEG:
                 return False
         self._path_last = T.copy()
         return True
@@ -285,19 +261,15 @@ class PoseRelay:
         """The robot's T_odom_base at ``stamp`` (None, with a warning, when tf has none). Waits
         up to ODOM_LOOKUP_TIMEOUT s of wall time: a sim clock that stops (the bag ends) must not
         hold the tracking thread."""
-        import time
-        import rospy
-        import tf2_ros
-        from ..conversions import transform_stamped_to_matrix
         deadline = time.monotonic() + ODOM_LOOKUP_TIMEOUT
         while True:
             try:
                 return transform_stamped_to_matrix(self.tf_buffer.lookup_transform(
-                    self.p["odom_frame"], self.p["base_frame"], stamp))
+                    self.p.odom_frame, self.p.base_frame, stamp))
             except (tf2_ros.TransformException, rospy.ROSTimeMovedBackwardsException) as e:
                 if time.monotonic() > deadline or rospy.is_shutdown():
                     self.warn("odomtf", "pose_node: no %s <- %s at %.3f (%s); map -> odom kept"
-                              % (self.p["odom_frame"], self.p["base_frame"], stamp.to_sec(),
+                              % (self.p.odom_frame, self.p.base_frame, stamp.to_sec(),
                                  str(e).splitlines()[0] if str(e) else type(e).__name__))
                     return None
             time.sleep(0.005)
@@ -305,30 +277,25 @@ class PoseRelay:
     def _resend_map_odom(self, _event=None) -> None:
         """Wheel odometry: the last map -> odom again, future-dated by one period (as amcl
         does), so lookups at the current time succeed while no image is tracked."""
-        import rospy
-        from ..conversions import matrix_to_transform_stamped
         T = self._last_map_odom
         if T is None or self.tf is None:
             return
         stamp = rospy.Time.now() + rospy.Duration(1.0 / MAP_ODOM_RATE)
-        self.tf.sendTransform(matrix_to_transform_stamped(T, stamp, self.p["map_frame"],
-                                                          self.p["odom_frame"]))
+        self.tf.sendTransform(matrix_to_transform_stamped(T, stamp, self.p.map_frame,
+                                                          self.p.odom_frame))
 
     def _odometry(self, stamp, T_map_base, T_map_odom):
         """/mdr/odom: the visual pose of base_link with covariance and twist (robot_localization
         reads both). In odom (continuous) without wheel odometry; in map with it, where the
         visual pose is the information the wheels lack."""
-        from nav_msgs.msg import Odometry
-        from ..conversions import matrix_to_pose
-        from ..geometry import body_twist, inv_T
         p = self.p
         odom = Odometry()
         odom.header.stamp = stamp
-        odom.child_frame_id = p["base_frame"]
+        odom.child_frame_id = p.base_frame
         if self.wheel_odom:
-            odom.header.frame_id, T = p["map_frame"], T_map_base
+            odom.header.frame_id, T = p.map_frame, T_map_base
         else:
-            odom.header.frame_id, T = p["odom_frame"], inv_T(T_map_odom) @ T_map_base
+            odom.header.frame_id, T = p.odom_frame, inv_T(T_map_odom) @ T_map_base
         odom.pose.pose = matrix_to_pose(T)
         odom.pose.covariance = _covariance(POSE_STD_M, POSE_STD_RAD)
         t = stamp.to_sec()
@@ -346,8 +313,6 @@ class PoseRelay:
     def publish(self, stamp, T_map_cam: np.ndarray, T_map_odom: np.ndarray = None) -> None:
         """One camera pose ``T_map_cam`` at ``stamp``. ``T_map_odom``: the tracker's map -> odom
         (loop-closure jumps) when the pose node owns odom -> base_link."""
-        from ..conversions import matrix_to_pose_stamped, matrix_to_transform_stamped
-        from ..geometry import inv_T, is_valid_T
         p = self.p
         if not is_valid_T(T_map_cam):
             self.warn("nan", "pose at %.3f is not a finite rigid transform; skipped" % stamp.to_sec())
@@ -374,9 +339,9 @@ class PoseRelay:
             return
         if self.odom_mode == "auto" and not self.wheel_odom and self.tf is not None and \
                 self.n_published == 0 and self.tf_buffer.can_transform(
-                    p["odom_frame"], p["base_frame"], stamp):
+                    p.odom_frame, p.base_frame, stamp):
             self.wheel_odom = True   # tf had it before this node published any: the robot's
-        ps = matrix_to_pose_stamped(T_map_cam, stamp, p["map_frame"])
+        ps = matrix_to_pose_stamped(T_map_cam, stamp, p.map_frame)
         self.pub_pose.publish(ps)
         T_map_base = T_map_cam @ inv_T(self.T_base_cam)
         T_map_odom = np.eye(4) if T_map_odom is None else T_map_odom
@@ -387,25 +352,24 @@ class PoseRelay:
             if T_odom_base is not None:
                 self._last_map_odom = T_map_base @ inv_T(T_odom_base)
                 tfs.append(matrix_to_transform_stamped(self._last_map_odom, stamp,
-                                                       p["map_frame"], p["odom_frame"]))
+                                                       p.map_frame, p.odom_frame))
         else:
-            tfs.append(matrix_to_transform_stamped(T_map_odom, stamp, p["map_frame"],
-                                                   p["odom_frame"]))
+            tfs.append(matrix_to_transform_stamped(T_map_odom, stamp, p.map_frame,
+                                                   p.odom_frame))
             if own_odom:
                 tfs.append(matrix_to_transform_stamped(inv_T(T_map_odom) @ T_map_base, stamp,
-                                                       p["odom_frame"], p["base_frame"]))
+                                                       p.odom_frame, p.base_frame))
         self._odometry(stamp, T_map_base, T_map_odom)
         if self._path_step(T_map_cam):
             with self._path_lock:
                 self.path.header.stamp = stamp
                 self.path.poses.append(ps)
-                if len(self.path.poses) > p["path_max_length"]:
-                    del self.path.poses[: len(self.path.poses) - p["path_max_length"]]
+                if len(self.path.poses) > PATH_MAX_LENGTH:
+                    del self.path.poses[: len(self.path.poses) - PATH_MAX_LENGTH]
                 self._path_dirty = True
             self._flush_path(throttled=True)
         if self.tf is not None and tfs:
             self.tf.sendTransform(tfs)
-        import rospy
         self.n_published += 1
         self.rate.tick()
         self.last_latency = (rospy.Time.now() - stamp).to_sec()
@@ -418,8 +382,6 @@ class LatestSlot:
     a slow frame (keyframe, map-lock wait) without a gap, at most that many frames late."""
 
     def __init__(self, capacity: int = 1):
-        import threading
-        from collections import deque
         self._cv = threading.Condition()
         self._items = deque()
         self.capacity = max(1, int(capacity))
@@ -459,17 +421,13 @@ _STATE_CODES = {"NOT_INITIALIZED": 0, "OK": 1, "LOST": 2, "RELOCALIZED": 3}
 _REASON_CODES = {"new_keyframe": 0, "local_ba": 1, "loop_closure": 2, "full_map": 3}
 
 
-class OrbNode:
+class OrbNode(PoseMapServices):
     """``source: orb``: stereo images (+ camera_info or ``calib``) -> mdr_slam.pose.System ->
     PoseRelay (pose, odom, path, tf), /mdr/tracking_state, /mdr/keyframes, ~save_trajectory."""
 
-    def __init__(self, p: dict, relay: PoseRelay):
-        import rospy
-        from mdr_slam_msgs.msg import KeyFrameArray, TrackingState
-        from mdr_slam_msgs.srv import SaveTrajectory
-        from ..pose.system import DEFAULT_PARAMS
+    def __init__(self, p: PoseNodeConfig, tracker: TrackerConfig, relay: PoseRelay):
         self.p = p
-        self.tracker_params = get_params(DEFAULT_PARAMS)   # the tracker's keys of pose.yaml
+        self.tracker_cfg = tracker
         self.relay = relay
         self.warn = relay.warn
         self.system = None
@@ -484,18 +442,18 @@ class OrbNode:
         self.pub_state = rospy.Publisher("mdr/tracking_state", TrackingState, queue_size=10)
         self.pub_kfs = rospy.Publisher("mdr/keyframes", KeyFrameArray, queue_size=10, latch=True)
         self.srv = rospy.Service("~save_trajectory", SaveTrajectory, self.on_save)
-        if p["calib"]:
-            from ..calib import load_stereo_calibration
-            self.camera = load_stereo_calibration(p["calib"])
-            rospy.loginfo("pose_node: calibration from %s (baseline %.4f m)", p["calib"],
+        self._init_map_files()
+        if p.calib:
+            self.camera = load_stereo_calibration(p.calib)
+            rospy.loginfo("pose_node: calibration from %s (baseline %.4f m)", p.calib,
                           self.camera.baseline)
         # the callbacks only hand the newest pairs to the frame thread (LatestSlot): a pair
         # arriving while it is busy replaces the oldest waiting one instead of queueing. With
         # pipeline_frames that thread makes the Frame (ORB on both images, stereo matching: no map
         # access) and a second slot hands it to the tracking thread, so frame N+1 is extracted
         # while frame N is tracked: the two stages overlap on two cores instead of adding up
-        self.slot = LatestSlot(int(p["max_pending"]))
-        self.frames = LatestSlot(int(p["max_pending"])) if p["pipeline_frames"] else None
+        self.slot = LatestSlot(int(p.max_pending))
+        self.frames = LatestSlot(int(p.max_pending)) if PIPELINE_FRAMES else None
         self.worker = threading.Thread(target=self._serve, args=(self.slot, self.process),
                                        name="frames", daemon=True)
         self.worker.start()
@@ -505,8 +463,8 @@ class OrbNode:
                                             name="tracking", daemon=True)
             self.tracker.start()
         self.input = StereoInput("pose_node", self.on_stereo, self.warn,
-                                 float(p["sync_tolerance"]), str(p["image_transport"]),
-                                 with_info=not p["calib"], queue_size=int(p["sync_queue_size"]))
+                                 float(p.sync_tolerance), str(p.image_transport),
+                                 with_info=not p.calib, queue_size=int(p.sync_queue_size))
         if self.camera is not None:
             self.camera = self._rectified(self.camera)
         rospy.loginfo("pose_node: ORB tracking on %s + %s", self.input.topics["left"],
@@ -515,18 +473,14 @@ class OrbNode:
     # ------------------------------------------------------------------ input
     def _rectified(self, cam):
         """``cam``, taken as rectified when the images already are (``rectified`` switch)."""
-        from ..camera import images_are_rectified
-        if images_are_rectified(self.p["rectified"], self.input.topics["left"], cam) and \
+        if images_are_rectified(self.p.rectified, self.input.topics["left"], cam) and \
                 not cam.is_rectified:
-            import rospy
             rospy.loginfo("pose_node: %s is rectified already: its camera_info's distortion and "
                           "R are not applied again", self.input.topics["left"])
             return cam.assume_rectified()
         return cam
 
     def _camera_from_info(self, li, ri):
-        from ..camera import CalibrationError, StereoCamera
-        from ..conversions import camera_info_to_model
         key = (tuple(li.K), tuple(li.P), tuple(li.D), tuple(ri.P), li.width, li.height)
         if key != self.info_key:
             try:
@@ -541,7 +495,6 @@ class OrbNode:
                     self.system = None
             self.camera, self.info_key = self._rectified(cam), key
             if cam.doffs:
-                import rospy
                 rospy.loginfo("pose_node: the right principal point is %+.3f px from the left's "
                               "(doffs): disparities are measured from it", -cam.doffs)
         return self.camera
@@ -558,7 +511,6 @@ class OrbNode:
 
     def _serve(self, slot, handle) -> None:
         """A worker thread: ``handle(*item)`` for each item of ``slot`` until it closes."""
-        import rospy
         while not slot.closed and not rospy.is_shutdown():
             item = slot.get(timeout=0.5)
             if item is None:
@@ -571,7 +523,6 @@ class OrbNode:
     def process(self, left_msg, right_msg, left_info=None, right_info=None):
         """Check and convert one stereo pair and make its Frame (the frame thread); the frame
         goes to the tracking thread (pipeline_frames) or is tracked here."""
-        from ..conversions import ConversionError
         stamp = left_msg.header.stamp
         cam = self.camera if left_info is None else self._camera_from_info(left_info, right_info)
         if cam is None:
@@ -587,7 +538,7 @@ class OrbNode:
             self.warn("size", "image sizes %s/%s differ from the calibration %dx%d; skipped"
                       % (left.shape[::-1], right.shape[::-1], w, h))
             return
-        frame_id = self.p["camera_frame"] or left_msg.header.frame_id or DEFAULT_CAMERA_FRAME
+        frame_id = self.p.camera_frame or left_msg.header.frame_id or DEFAULT_CAMERA_FRAME
         if not self.relay.resolve_camera(frame_id):
             return
         t = stamp.to_sec()
@@ -608,20 +559,19 @@ class OrbNode:
                 self.kf_poses = {}
         self.last_stamp = t
         if self.system is None:
-            from ..pose import System, make_system
             with self.lock:
                 # REP-105: map is base_link where tracking starts (z up for a level robot);
                 # without any base -> camera transform, map is the first camera's frame
-                args = dict(threads=bool(self.p["threads"]), T_map_cam0=self.relay.T_base_cam)
+                args = dict(threads=bool(self.p.threads), T_map_cam0=self.relay.T_base_cam)
                 try:
-                    self.system = make_system(cam, self.tracker_params, **args)
+                    self.system = make_system(cam, self.tracker_cfg, **args)
                 except (ImportError, OSError, ValueError, RuntimeError) as e:
                     # an optional backend that cannot start must not stop the robot
-                    import rospy
                     rospy.logerr("pose_node: backend %r unavailable (%s): using the built-in "
-                                 "tracker", self.tracker_params.get("backend"), e)
-                    self.tracker_params["backend"] = "mdr"
-                    self.system = System(cam, self.tracker_params, **args)
+                                 "tracker", self.tracker_cfg.backend, e)
+                    self.tracker_cfg = self.tracker_cfg.replace(backend="mdr")
+                    self.system = System(cam, self.tracker_cfg, **args)
+                self._load_start_map(self.system)
         system = self.system
         left, right = cam.rectify(left, right)
         try:
@@ -650,10 +600,9 @@ class OrbNode:
 
     # ------------------------------------------------------------------ output
     def publish(self, stamp, res) -> None:
-        from mdr_slam_msgs.msg import TrackingState
         st = TrackingState()
         st.header.stamp = stamp
-        st.header.frame_id = self.p["map_frame"]
+        st.header.frame_id = self.p.map_frame
         st.state = _STATE_CODES.get(res.state, 2)
         st.n_tracked_points = res.n_tracked
         st.n_map_points = res.n_map_points
@@ -663,8 +612,11 @@ class OrbNode:
         st.tracking_time_ms = res.time_ms
         self.pub_state.publish(st)
         self.relay.note_tracking(res)
+        if res.state == "RELOCALIZED" and self.relocalized_at is None and \
+                getattr(self.system, "map_loaded", False):
+            self.relocalized_at = stamp.to_sec()
+            rospy.loginfo("pose_node: relocalized in the loaded map at %.3f", self.relocalized_at)
         if res.state != self.last_state:   # transitions only: at most a few lines per run
-            import rospy
             log = rospy.logwarn if res.state == "LOST" else rospy.loginfo
             log("tracking %s -> %s at %.3f (%d points tracked, %d keyframes, %d frames skipped "
                 "while busy so far)", self.last_state, res.state, stamp.to_sec(), res.n_tracked,
@@ -675,7 +627,6 @@ class OrbNode:
             if reason == "loop_closure" and res.ref_keyframe_id in kfs and \
                     res.ref_keyframe_id in self.kf_poses:
                 # the jump goes into map -> odom so odom -> base_link stays continuous (REP-105)
-                from ..geometry import inv_T
                 new = kfs[res.ref_keyframe_id][1]
                 self.T_map_odom = new @ inv_T(self.kf_poses[res.ref_keyframe_id]) @ self.T_map_odom
             self.publish_keyframes(stamp, _REASON_CODES.get(reason, 1), cid, kfs)
@@ -688,12 +639,9 @@ class OrbNode:
             self.relay.publish(stamp, res.T_map_cam, self.T_map_odom)
 
     def publish_keyframes(self, stamp, reason: int, cid: int, kfs: dict) -> None:
-        import rospy
-        from mdr_slam_msgs.msg import KeyFrame, KeyFrameArray
-        from ..conversions import matrix_to_pose
         msg = KeyFrameArray()
         msg.header.stamp = stamp
-        msg.header.frame_id = self.p["map_frame"]
+        msg.header.frame_id = self.p.map_frame
         msg.reason = reason
         msg.correction_id = cid
         for k in sorted(kfs):
@@ -707,8 +655,6 @@ class OrbNode:
         self.pub_kfs.publish(msg)
 
     def save_trajectory(self, path: str, fmt: str = ""):
-        import os
-        from ..io.trajectory import write_kitti_poses, write_tum
         if self.system is None:
             raise RuntimeError("nothing tracked yet")
         traj = self.system.trajectory()
@@ -719,8 +665,7 @@ class OrbNode:
         return n
 
     def on_save(self, req):
-        from mdr_slam_msgs.srv import SaveTrajectoryResponse
-        path = req.path or self.p["trajectory_path"] or "trajectory.txt"
+        path = req.path or self.p.trajectory_path or "trajectory.txt"
         with self.lock:
             try:
                 n = self.save_trajectory(path, req.format)
@@ -729,15 +674,24 @@ class OrbNode:
         return SaveTrajectoryResponse(True, "wrote %d poses" % n, path, n)
 
     def _save_on_exit(self) -> None:
-        import rospy
-        if self.p["trajectory_path"] and self.system is not None:
+        if self.autosaving and getattr(self.system, "map", None) is not None and \
+                self.system.map.keyframes:
             try:
-                n = self.save_trajectory(self.p["trajectory_path"], self.p["trajectory_format"])
-                rospy.loginfo("pose_node: wrote %d poses to %s", n, self.p["trajectory_path"])
+                info = self._save_map(self.autosave_folder, self.system)
+                rospy.loginfo("pose_node: saved %d keyframes to %s", info["keyframes"],
+                              self.autosave_folder)
+            except (PoseMapError, IOError, OSError, ValueError) as e:
+                rospy.logerr("pose_node: could not save the sparse map: %s", e)
+        if self.p.trajectory_path and self.system is not None:
+            try:
+                n = self.save_trajectory(self.p.trajectory_path, self.p.trajectory_format)
+                rospy.loginfo("pose_node: wrote %d poses to %s", n, self.p.trajectory_path)
             except Exception as e:
                 rospy.logerr("pose_node: could not write the trajectory: %s", e)
 
     def shutdown(self) -> None:
+        if self.autosave_timer is not None:
+            self.autosave_timer.shutdown()
         self.slot.close()
         self.worker.join(timeout=10.0)
         if self.frames is not None:
@@ -747,45 +701,41 @@ class OrbNode:
             self._save_on_exit()
             if self.system is not None:
                 self.system.shutdown()
+        if self.autosaving:
+            self.marker.clear()
 
 
 def main():
-    import rospy
-    from geometry_msgs.msg import PoseStamped
-    from ..conversions import ConversionError, pose_stamped_to_matrix
     rospy.init_node("pose_node")
-    p = get_params(DEFAULTS)
-    from ..pose.params import DEFAULT_PARAMS
-    unknown_params(set(DEFAULTS) | set(DEFAULT_PARAMS), "pose_node")
-    if int(p["blas_threads"]) > 0:
+    p, tracker = read_config("pose_node", *NODE_CONFIGS["pose"])
+    if BLAS_THREADS > 0:
         # one BLAS thread: OpenBLAS's second thread mostly spins on the small BA/PnP products
         # and takes CPU from the depth and fusion nodes on a 2-core machine
         try:
-            from threadpoolctl import threadpool_limits
-            threadpool_limits(int(p["blas_threads"]), user_api="blas")
+            from threadpoolctl import threadpool_limits  # optional package
+            threadpool_limits(BLAS_THREADS, user_api="blas")
         except Exception as e:   # noqa: BLE001  (threadpoolctl missing: library default)
             rospy.logwarn("pose_node: BLAS threads not limited: %s", e)
-    if int(p["cv_threads"]) > 0:
+    if CV_THREADS > 0:
         # left and right ORB already run in two threads; OpenCV's own pool on top of them costs
         # CPU (the pyramid's parallel loops: 15.0 -> 11.9 ms CPU per 752x480 image with one)
-        import cv2
-        cv2.setNumThreads(int(p["cv_threads"]))
+        cv2.setNumThreads(CV_THREADS)
     relay = PoseRelay(p)
-    if p["source"] == "groundtruth":
+    if p.source == "groundtruth":
         def on_gt(msg):
             try:
                 T = pose_stamped_to_matrix(msg)
             except ConversionError as e:
                 relay.warn("bad", "ground-truth pose skipped: %s" % e)
                 return
-            if relay.resolve_camera(p["camera_frame"] or DEFAULT_CAMERA_FRAME):
+            if relay.resolve_camera(p.camera_frame or DEFAULT_CAMERA_FRAME):
                 relay.publish(msg.header.stamp, T)
         rospy.Subscriber("ground_truth_pose", PoseStamped, on_gt, queue_size=100)
         rospy.loginfo("pose_node: relaying ground truth from %s",
                       rospy.resolve_name("ground_truth_pose"))
-    elif p["source"] == "orb":
-        node = OrbNode(p, relay)
+    elif p.source == "orb":
+        node = OrbNode(p, tracker, relay)
         rospy.on_shutdown(node.shutdown)
     else:
-        rospy.logerr("pose_node: unknown ~source %r (orb or groundtruth)", p["source"])
+        rospy.logerr("pose_node: unknown ~source %r (orb or groundtruth)", p.source)
     rospy.spin()

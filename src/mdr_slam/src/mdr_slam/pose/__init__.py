@@ -7,18 +7,18 @@ C++ tracker, mdr_slam.pose.orbslam3). ROS-free.
 """
 from __future__ import annotations
 
+from .config import TrackerConfig
 from .factory import make_system
 from .frame import Frame, compute_stereo_matches
+from .local_mapping import LocalMapping
 from .map import KeyFrame, Map, MapPoint
 from .matcher import ORBmatcher
 from .optimizer import Optimizer
 from .orb import ORBextractor
-from .params import DEFAULT_PARAMS
 from .result import TrackResult
 from .system import System
 from .tracking import LOST, NOT_INITIALIZED, OK, RELOCALIZED, Tracking
-from .local_mapping import LocalMapping
 
 __all__ = ["Frame", "KeyFrame", "Map", "MapPoint", "ORBmatcher", "Optimizer", "ORBextractor",
-           "System", "TrackResult", "DEFAULT_PARAMS", "make_system", "Tracking", "LocalMapping",
+           "System", "TrackResult", "TrackerConfig", "make_system", "Tracking", "LocalMapping",
            "compute_stereo_matches", "NOT_INITIALIZED", "OK", "LOST", "RELOCALIZED"]

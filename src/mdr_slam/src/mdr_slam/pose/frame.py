@@ -7,15 +7,18 @@ an 11x11 SAD patch search over +-5 px and a parabola through the three SAD value
 give a sub-pixel disparity; matches whose SAD exceeds 2.1x the median are dropped (repetitive
 texture). Everything is vectorized: candidate pairs from per-octave row buckets (sorted rows +
 searchsorted), Hamming distances on those pairs only, one sort for the best pair per keypoint,
-and the 11 SAD shifts of all matches as int16 arrays, one shift at a time (tests/test_pose_speed.py
+and the 11 SAD shifts of all matches as int16 arrays, one shift at a time (tests/pose/test_pose_speed.py
 checks the result against a plain per-keypoint loop).
 """
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from typing import Optional
 
 import numpy as np
 
+from ..geometry import inv_T, transform_points
+from .optimizer import normalize_pose
 from .orb import TH_HIGH, TH_LOW, ORBextractor, expand_ranges, hamming
 
 __all__ = ["Frame", "FeatureGrid", "compute_stereo_matches"]
@@ -26,7 +29,6 @@ _POOL = None
 def _pool():
     global _POOL
     if _POOL is None:
-        from concurrent.futures import ThreadPoolExecutor
         _POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ORBright")
     return _POOL
 
@@ -300,7 +302,6 @@ class Frame:
         return self._grid
 
     def set_pose(self, T_cw: np.ndarray) -> None:
-        from .optimizer import normalize_pose
         self.T_cw = normalize_pose(np.asarray(T_cw, dtype=float))
 
     def append_keypoints(self, uv, octave, angle, desc, ur, depth) -> np.ndarray:
@@ -333,7 +334,6 @@ class Frame:
 
     @property
     def T_wc(self) -> np.ndarray:
-        from ..geometry import inv_T
         return inv_T(self.T_cw)
 
     def stereo_points_camera(self, idx: Optional[np.ndarray] = None) -> np.ndarray:
@@ -346,5 +346,4 @@ class Frame:
 
     def unproject_stereo(self, idx: np.ndarray) -> np.ndarray:
         """World points of keypoints ``idx`` (their depth must be > 0)."""
-        from ..geometry import transform_points
         return transform_points(self.T_wc, self.stereo_points_camera(idx))

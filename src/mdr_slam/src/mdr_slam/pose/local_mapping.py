@@ -12,24 +12,30 @@ It runs in a thread (System(threads=True)) or synchronously inside System.track 
 the deterministic offline runner).
 
 Cost (CPU per keyframe on the 752x480 sample, measured under load):
-local BA dominates, so its rounds end once converged (``ba_tol``); the triangulation search can
-be restricted to pairs under the same vocabulary node (``triangulation_bow_depth`` > 0, ORB-SLAM2's
-SearchForTriangulation), which is off by default: at depth 1 it saved only ~15 % of this step on
-the 600-frame sample, and that run's ATE was worse (0.25 m against 0.07 m).
+local BA dominates, so its rounds end once converged (``BA_TOL``). The triangulation search
+compares every pair against the epipolar line (vectorized); ORB-SLAM2's prefilter by vocabulary
+node saved only ~15 % of this step here and made the ATE worse.
 """
 from __future__ import annotations
 
 import threading
+import time
 from collections import deque
-from typing import List, Optional
+from typing import Optional
 
 import numpy as np
 
-from ..geometry import inv_T
+from .ba_process import BAWorker
 from .optimizer import CHI2_MONO, CHI2_STEREO, Optimizer, project_residuals
 from .orb import TH_LOW, hamming
 
-__all__ = ["LocalMapping", "same_node_pairs", "feature_nodes"]
+__all__ = ["LocalMapping"]
+
+# Tuned internals (ORB-SLAM2 LocalMapping's counterpart in brackets)
+BA_COVISIBLE = 10              # covisible keyframes optimised with the new one (LocalBundleAdjustment: all)
+BA_ITERATIONS = 8              # local BA iterations per round (5 + 10 after outlier removal)
+BA_TOL = 1e-3                  # a round ends once a step lowers the robust cost by less than this share of it
+TRIANGULATION_NEIGHBOURS = 10  # best covisible keyframes a new keyframe triangulates with (CreateNewMapPoints: 10)
 
 
 def _skew(t: np.ndarray) -> np.ndarray:
@@ -47,35 +53,11 @@ def triangulate(P1: np.ndarray, P2: np.ndarray, x1: np.ndarray, x2: np.ndarray) 
         return X[:, :3] / X[:, 3:4]
 
 
-def feature_nodes(voc, desc: np.ndarray, depth: int) -> np.ndarray:
-    """Vocabulary tree node of each descriptor at ``depth`` (1 = the root's children): ORB-SLAM2's
-    FeatureVector "direct index" (DBoW2 transform with levelsup)."""
-    return voc.transform_words(desc, depth)
-
-
-def same_node_pairs(n1: np.ndarray, n2: np.ndarray):
-    """All index pairs (i, j) with n1[i] == n2[j] (the candidates ORB-SLAM2's
-    SearchForTriangulation compares: features under the same vocabulary node), vectorized with a
-    sort of n2 and run-length expansion instead of the dense n1 x n2 comparison."""
-    o2 = np.argsort(n2, kind="stable")
-    s2 = n2[o2]
-    lo = np.searchsorted(s2, n1, "left")
-    cnt = np.searchsorted(s2, n1, "right") - lo
-    tot = int(cnt.sum())
-    if tot == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    pi = np.repeat(np.arange(len(n1)), cnt)
-    # position inside the run of pair t: t - (first pair index of its i)
-    first = np.cumsum(cnt) - cnt
-    pj = o2[lo[pi] + np.arange(tot) - first[pi]]
-    return pi, pj
-
-
 class LocalMapping:
-    def __init__(self, system, params: dict):
+    def __init__(self, system, cfg):
         self.system = system
         self.map = system.map
-        self.p = params
+        self.cfg = cfg            # TrackerConfig
         self.queue = deque()
         self.cv = threading.Condition()
         self.abort_ba = False
@@ -103,7 +85,6 @@ class LocalMapping:
 
     def wait_queue_below(self, n: int, timeout: float = 1.0) -> bool:
         """Block (without the map lock) until fewer than ``n`` keyframes wait, or timeout."""
-        import time
         end = time.monotonic() + timeout
         while len(self.queue) >= n and time.monotonic() < end:
             if self.thread is None or not self.thread.is_alive():
@@ -115,8 +96,7 @@ class LocalMapping:
         self.abort_ba = True
 
     def start(self) -> None:
-        if self.p.get("ba_process", False):
-            from .ba_process import BAWorker
+        if self.cfg.ba_process:
             self.ba_worker = BAWorker()
             self.ba_worker.prewarm()
         self.thread = threading.Thread(target=self._run, name="LocalMapping", daemon=True)
@@ -169,8 +149,7 @@ class LocalMapping:
         # the epipolar search reads keyframes only; it takes the map lock just to add points, so
         # tracking is not blocked behind it (it held the lock ~250 ms per keyframe under load)
         self.create_new_map_points(kf)
-        if not self.queue and len(mp.keyframes) > 2 and self.p["local_ba"]:
-            import time
+        if not self.queue and len(mp.keyframes) > 2 and self.cfg.local_ba:
             t0 = time.perf_counter()
 
             def abort():   # per LM iteration, without the map lock
@@ -178,8 +157,8 @@ class LocalMapping:
                 return self.abort_ba and self.system.threads
             pause()
             moved, _ = Optimizer.local_bundle_adjustment(
-                kf, mp, n_covisible=self.p["ba_covisible"], iterations=self.p["ba_iterations"],
-                abort=abort, worker=self.ba_worker, tol=self.p.get("ba_tol", 1e-3))
+                kf, mp, n_covisible=BA_COVISIBLE, iterations=BA_ITERATIONS,
+                abort=abort, worker=self.ba_worker, tol=BA_TOL)
             self.last_ba_ms = 1000.0 * (time.perf_counter() - t0)
             pause()
             with mp.lock:
@@ -225,15 +204,13 @@ class LocalMapping:
         """Triangulate unmatched keypoints of ``kf`` with its best covisible keyframes."""
         mp = self.map
         with mp.lock:
-            neigh = mp.best_covisibles(kf, self.p["triangulation_neighbours"])
+            neigh = mp.best_covisibles(kf, TRIANGULATION_NEIGHBOURS)
         R1, t1 = kf.T_cw[:3, :3], kf.T_cw[:3, 3]
         O1 = kf.T_wc[:3, 3]
         K = np.array([[kf.fx, 0, kf.cx], [0, kf.fy, kf.cy], [0, 0, 1.0]])
         Kinv = np.linalg.inv(K)
         ratio_factor = 1.5 * kf.scale[1] if len(kf.scale) > 1 else 1.8
         total = 0
-        voc = self._vocabulary()
-        nodes = self._nodes(kf, voc) if voc is not None else None
         live = bool(getattr(self.system, "threads", False))
         for n_done, kf2 in enumerate(neigh):
             if live and n_done > 0 and self.queue:
@@ -255,21 +232,13 @@ class LocalMapping:
             x2 = np.column_stack([kf2.uv[f2], np.ones(len(f2))])
             lines = x1 @ F12                                   # epipolar lines in image 2
             sig2 = 3.84 * kf2.scale[kf2.octave[f2]] ** 2
-            if nodes is not None:
-                # BoW prefilter: only pairs under the same vocabulary node (ORB-SLAM2)
-                pi, pj = same_node_pairs(nodes[f1], self._nodes(kf2, voc)[f2])
-                num = np.einsum("ij,ij->i", lines[pi], x2[pj])
-                den = lines[pi, 0] ** 2 + lines[pi, 1] ** 2
-                ok = num ** 2 < sig2[pj] * den
-                pi, pj = pi[ok], pj[ok]
-            else:
-                # point-to-line distances |l . x2| / |l_xy| of all pairs, in place on the one
-                # (n1, n2) product (no squared or broadcast temporaries: ~2.5x faster)
-                dist_l = lines @ x2.T                          # (n1, n2)
-                with np.errstate(divide="ignore"):
-                    dist_l *= (1.0 / np.sqrt(lines[:, 0] ** 2 + lines[:, 1] ** 2))[:, None]
-                np.abs(dist_l, out=dist_l)
-                pi, pj = np.nonzero(dist_l < np.sqrt(sig2)[None, :])
+            # point-to-line distances |l . x2| / |l_xy| of all pairs, in place on the one
+            # (n1, n2) product (no squared or broadcast temporaries: ~2.5x faster)
+            dist_l = lines @ x2.T                          # (n1, n2)
+            with np.errstate(divide="ignore"):
+                dist_l *= (1.0 / np.sqrt(lines[:, 0] ** 2 + lines[:, 1] ** 2))[:, None]
+            np.abs(dist_l, out=dist_l)
+            pi, pj = np.nonzero(dist_l < np.sqrt(sig2)[None, :])
             # Hamming only on the pairs that satisfy the epipolar constraint (a few %)
             if len(pi) == 0:
                 continue
@@ -341,21 +310,6 @@ class LocalMapping:
             self.recent_points = np.concatenate([self.recent_points, ids])
             total += len(a)
         return total
-
-    def _vocabulary(self):
-        """The loop closer's vocabulary for the triangulation prefilter (None: brute force)."""
-        if int(self.p.get("triangulation_bow_depth", 0)) <= 0:
-            return None
-        lc = getattr(self.system, "loop_closing", None)
-        return getattr(lc, "voc", None)
-
-    def _nodes(self, kf, voc) -> np.ndarray:
-        """Vocabulary node of each keypoint of ``kf`` (cached on the keyframe)."""
-        nodes = getattr(kf, "feat_nodes", None)
-        if nodes is None:
-            nodes = feature_nodes(voc, kf.desc, int(self.p.get("triangulation_bow_depth", 0)))
-            kf.feat_nodes = nodes
-        return nodes
 
     def keyframe_culling(self, kf) -> int:
         """Cull covisible keyframes whose points are 90 % redundant (seen by >= 3 others at the

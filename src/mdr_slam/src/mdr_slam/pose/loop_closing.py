@@ -33,18 +33,51 @@ revisit, even 0.1 m / 5 deg from the old view, and the old keyframes keep only 2
 from __future__ import annotations
 
 import threading
+import time
 from collections import deque
 from typing import Dict, List, Optional
 
+import cv2
 import numpy as np
 
 from ..geometry import inv_T, rotation_angle
+from .ba_process import BAWorker
 from .matcher import ORBmatcher, _unique_by
-from .optimizer import Optimizer, normalize_pose
+from .optimizer import Optimizer, global_bundle_adjustment, normalize_pose
 from .orb import TH_LOW, hamming_matrix
-from .params import DEFAULT_PARAMS
+from .vocabulary import KeyFrameDatabase, bow_score, load_vocabulary
 
 __all__ = ["LoopClosing", "ransac_se3", "rotation_sigma_deg", "loop_rotation_check"]
+
+# Tuned internals (ORB-SLAM2 LoopClosing's counterpart in brackets where there is one)
+LOOP_CONSISTENCY = 2           # consecutive keyframes a loop candidate must recur (mnCovisibilityConsistencyTh: 3)
+LOOP_MIN_AGE = 3.0             # s; younger keyframes are never loop candidates
+LOOP_MAX_DRIFT = 0.3           # a loop may move the keyframe <= this x the keyframe path since the match ...
+LOOP_MAX_ROTATION_DEG = 45.0   # ... and turn it at most this much (false-loop gate)
+LOOP_MAX_ROT_SIGMA_DEG = 1.0   # a BoW loop whose inliers leave its rotation more uncertain than this ...
+LOOP_ROT_SIGNIFICANCE = 5.0    # ... is accepted only when it turns the map by this many sigmas ...
+LOOP_ROT_SIGMA_CAP_DEG = 4.0   # ... and never when that sigma exceeds this
+LOOP_REPROJECTION_REFINE = True  # BoW loop transform refined by the keyframe's pixels (OptimizeSim3)
+POSE_GRAPH_WEIGHTS = True      # pose-graph edge information from shared points (OptimizeEssentialGraph: equal)
+GLOBAL_BA_ITERATIONS = 20      # iterations of each global BA (RunGlobalBundleAdjustment: 10)
+GLOBAL_BA_MIN_KF_POINTS = 20   # keyframes seeing fewer points follow their parent in the global BA
+GLOBAL_BA_PROCESS = True       # threads: the global BA solved in a child process (out of the GIL) ...
+GLOBAL_BA_NICE = 10            # ... at this nice increment (it yields the CPU to tracking)
+# Proximity loops (no ORB-SLAM2 counterpart; ORB-SLAM3 / RTAB-Map style): keyframes near the estimated
+# pose, ranked by phase correlation of their quarter images (112 kB kept per keyframe), verified by LK + PnP
+LOOP_PROXIMITY = True
+LOOP_PROXIMITY_RADIUS = 0.5         # m, + LOOP_MAX_DRIFT x the keyframe path since the candidate ...
+LOOP_PROXIMITY_MAX_RADIUS = 2.0     # ... capped at this (m)
+LOOP_PROXIMITY_MIN_PATH = 2.0       # m of keyframe path since the candidate (a stop-and-sweep revisits itself)
+LOOP_PROXIMITY_ANGLE_DEG = 45.0     # optical axes at most this far apart
+LOOP_PROXIMITY_MIN_RESPONSE = 0.3   # phase-correlation response of the quarter images
+LOOP_PROXIMITY_CANDIDATES = 2       # verified per keyframe (best responses)
+LOOP_PROXIMITY_MIN_INLIERS = 40     # PnP inliers of the LK tracks (and >= 60 % of them) ...
+LOOP_PROXIMITY_WEAK_INLIERS = 15    # ... or down to this many when consistent ...
+LOOP_PROXIMITY_WEAK_CONSISTENCY = 2  # ... with this many previous weak verifications
+LOOP_PROXIMITY_TWO_WAY = True       # the candidate's keypoints tracked into the keyframe too: both poses
+LOOP_PROXIMITY_TWO_WAY_DEG = 2.0    # agree within this rotation ...
+LOOP_PROXIMITY_TWO_WAY_M = 0.5      # ... and translation (m)
 
 
 def _umeyama_batch(A: np.ndarray, B: np.ndarray) -> np.ndarray:
@@ -128,12 +161,11 @@ def loop_rotation_check(A: np.ndarray, B: np.ndarray, S: np.ndarray, max_sigma_d
 
 
 class LoopClosing:
-    def __init__(self, system, params: dict):
-        from .vocabulary import KeyFrameDatabase, load_vocabulary
+    def __init__(self, system, cfg):
         self.system = system
         self.map = system.map
-        self.p = dict(DEFAULT_PARAMS, **params)   # the defaults of one place, not inline ones
-        self.voc = load_vocabulary(self.p["vocabulary"] or None)
+        self.cfg = cfg            # TrackerConfig
+        self.voc = load_vocabulary(cfg.vocabulary or None)
         self.db = KeyFrameDatabase(self.voc)
         self.matcher = ORBmatcher(check_orientation=True)
         self.queue = deque()
@@ -143,7 +175,7 @@ class LoopClosing:
         self.corrections = []
         self.last_loop_kf_id = -10 ** 9
         self.consistent_groups: List[tuple] = []   # (set of kf ids, consistency count)
-        self.min_consistency = int(self.p["loop_consistency"])
+        self.min_consistency = LOOP_CONSISTENCY
         self.min_inliers = 20
         self.loops: List[tuple] = []               # accepted (current kf id, loop kf id)
         self.global_ba_runs: List[dict] = []       # global_bundle_adjustment summaries (+ ms)
@@ -207,9 +239,8 @@ class LoopClosing:
     def keep_image(self, kf_id: int, image: np.ndarray) -> None:
         """Keep a keyframe's left image at half and quarter resolution (90 + 22 kB at 752x480)
         for the proximity loop path (``loop_proximity``); called by System after tracking."""
-        if not self.p["loop_proximity"] or image is None or image.ndim != 2:
+        if not LOOP_PROXIMITY or image is None or image.ndim != 2:
             return
-        import cv2
         half = cv2.pyrDown(image)
         self.images[int(kf_id)] = (half, cv2.pyrDown(half))
 
@@ -224,14 +255,14 @@ class LoopClosing:
             cand = self.detect_loop(kf, bow)
             if cand is not None:
                 closed = self.try_close(kf, cand)
-            if not closed and self._exclude and self.p["loop_proximity"]:
+            if not closed and self._exclude and LOOP_PROXIMITY:
                 closed = self.try_proximity(kf)
             self.db.add(kf.id, bow)
             if kf.id % 20 == 0:   # images of culled keyframes are no longer candidates
                 for k in [k for k in list(self.images) if k not in self.map.keyframes or
                           self.map.keyframes[k].bad]:   # list(): tracking adds meanwhile
                     self.images.pop(k, None)
-        if closed and self.p["global_ba"]:
+        if closed and self.cfg.global_ba:
             self.run_global_ba()
 
     def _gba_abort(self) -> bool:
@@ -245,19 +276,16 @@ class LoopClosing:
         of the correction. In threaded mode the map lock is released while the solver runs
         (tracking goes on; keyframes and points made meanwhile follow their ancestors); the
         corrected keyframe poses are reported like the loop correction."""
-        import time
-        from .optimizer import global_bundle_adjustment
         t0 = time.perf_counter()
         worker = None
-        if self.system.threads and self.p["global_ba_process"]:
+        if self.system.threads and GLOBAL_BA_PROCESS:
             # a child process per global BA (they are rare: its ~60 MB are not kept); in this
             # thread the solver's long numpy/scipy steps stalled tracking (frames dropped live)
-            from .ba_process import BAWorker
-            worker = BAWorker(nice=int(self.p["global_ba_nice"]))
+            worker = BAWorker(nice=int(GLOBAL_BA_NICE))
         try:
             res = global_bundle_adjustment(   # the first keyframe holds the map frame (ORB-SLAM2)
-                self.map, iterations=int(self.p["global_ba_iterations"]),
-                min_kf_points=int(self.p["global_ba_min_kf_points"]),
+                self.map, iterations=int(GLOBAL_BA_ITERATIONS),
+                min_kf_points=int(GLOBAL_BA_MIN_KF_POINTS),
                 abort=self._gba_abort if self.system.threads else None,
                 lock_solve=not self.system.threads, worker=worker)
         finally:
@@ -289,10 +317,10 @@ class LoopClosing:
         near = set(conn)
         for k in conn:
             near |= set(mp.keyframes[k].connections)
-        min_age = float(self.p["loop_min_age"])
+        min_age = float(LOOP_MIN_AGE)
         exclude = near | {kf.id} | {k for k in self.db.bows if k > kf.id - 5} | \
-            {k for k in self.db.bows if k in mp.keyframes and
-             kf.stamp - mp.keyframes[k].stamp < min_age}
+            {k for k in self.db.bows if k in mp.keyframes and k >= mp.loaded_next_kf_id and
+             kf.stamp - mp.keyframes[k].stamp < min_age}   # a loaded map's keyframes are old
         self._exclude = exclude
         cands = [k for k, s in self.db.query(bow, exclude=exclude, min_score=min_score, top=5)]
         # consistency: a candidate's group (it + its connections) must overlap a group that was
@@ -316,7 +344,6 @@ class LoopClosing:
         return accepted or None
 
     def try_close(self, kf, cands) -> bool:
-        mp = self.map
         for cand in cands:
             res = self.compute_se3(kf, cand)
             if res is None:
@@ -342,7 +369,6 @@ class LoopClosing:
         of the quarter images (cv2.phaseCorrelate; its shift starts the LK search; responses
         below ``loop_proximity_min_response`` are dropped). Returns [(response, kf id, (dx, dy)
         full-image shift)] best first, at most ``loop_proximity_candidates``."""
-        import cv2
         mp = self.map
         if kf.id not in self.images:
             return []
@@ -359,11 +385,11 @@ class LoopClosing:
         dist = np.linalg.norm(Po - T[:3, 3], axis=1)
         ang = np.degrees(np.arccos(np.clip(Zo @ T[:3, 2], -1.0, 1.0)))
         path = cum[pos[kf.id]] - cum[[pos[k] for k in old]]
-        radius = np.minimum(float(self.p["loop_proximity_radius"]) +
-                            float(self.p["loop_max_drift"]) * path,
-                            float(self.p["loop_proximity_max_radius"]))
-        ok = (dist <= radius) & (ang <= float(self.p["loop_proximity_angle_deg"])) & \
-            (path >= float(self.p["loop_proximity_min_path"]))
+        radius = np.minimum(float(LOOP_PROXIMITY_RADIUS) +
+                            float(LOOP_MAX_DRIFT) * path,
+                            float(LOOP_PROXIMITY_MAX_RADIUS))
+        ok = (dist <= radius) & (ang <= float(LOOP_PROXIMITY_ANGLE_DEG)) & \
+            (path >= float(LOOP_PROXIMITY_MIN_PATH))
         sel = old[ok][np.argsort(dist[ok])][:60]   # bounded cost: ~0.3 ms per response
         q = self.images[kf.id][1].astype(np.float32)
         win = cv2.createHanningWindow(q.shape[::-1], cv2.CV_32F)
@@ -371,9 +397,9 @@ class LoopClosing:
         for k in sel.tolist():
             (dx, dy), r = cv2.phaseCorrelate(q, self.images[k][1].astype(np.float32), win)
             out.append((float(r), int(k), (2.0 * dx, 2.0 * dy)))
-        th = float(self.p["loop_proximity_min_response"])
+        th = float(LOOP_PROXIMITY_MIN_RESPONSE)
         out = sorted([o for o in out if o[0] >= th], key=lambda o: -o[0])
-        return out[: int(self.p["loop_proximity_candidates"])]
+        return out[: int(LOOP_PROXIMITY_CANDIDATES)]
 
     def verify_proximity(self, kf, cand, shift=(0.0, 0.0)):
         """Appearance-free geometric verification of a proximity candidate: kf's stereo keypoints
@@ -389,22 +415,22 @@ class LoopClosing:
         if kf.id not in self.images or cand.id not in self.images:
             return None
         self.proximity_tries += 1
-        min_inl = int(self.p["loop_proximity_min_inliers"])
-        weak = int(self.p["loop_proximity_weak_inliers"])
+        min_inl = int(LOOP_PROXIMITY_MIN_INLIERS)
+        weak = int(LOOP_PROXIMITY_WEAK_INLIERS)
         if weak > 0:
             min_inl = min(min_inl, weak)
         fwd = self._lk_pnp(kf, cand, shift, min_inl)
         if fwd is None:
             return None
         T_ck, sel, uv = fwd
-        if self.p["loop_proximity_two_way"]:
+        if LOOP_PROXIMITY_TWO_WAY:
             back = self._lk_pnp(cand, kf, (-shift[0], -shift[1]), min_inl)
             if back is not None:   # cand's side gave a pose: the two must agree
                 D = back[0] @ T_ck   # T_kc T_ck: identity when they agree
                 moved = float(np.linalg.norm(D[:3, 3]))
                 ang = float(np.degrees(rotation_angle(D)))
-                if moved > float(self.p["loop_proximity_two_way_m"]) or \
-                        ang > float(self.p["loop_proximity_two_way_deg"]):
+                if moved > float(LOOP_PROXIMITY_TWO_WAY_M) or \
+                        ang > float(LOOP_PROXIMITY_TWO_WAY_DEG):
                     self.one_way.append((kf.id, cand.id, moved, ang))
                     return None
         S = cand.T_wc @ T_ck @ kf.T_cw   # corrected kf pose (cand T_wc T_ck) times the old inverse
@@ -414,7 +440,6 @@ class LoopClosing:
         """src's stereo keypoints tracked into dst's image (LK, half resolution) and dst's pose
         relative to src by PnP RANSAC: (T_dst_src, src keypoint index, dst image position) of
         the inliers, or None."""
-        import cv2
         a, b = self.images[src.id][0], self.images[dst.id][0]
         sel = np.nonzero(src.depth > 0)[0]
         if len(sel) < min_inl:
@@ -450,7 +475,7 @@ class LoopClosing:
         ``loop_proximity_weak_consistency`` weak ones (keyframes at most 4 ids apart, each to
         the next) agree with it: the current keyframe corrected by each lies within 0.1 m and
         3 deg of its correction by S."""
-        need = int(self.p["loop_proximity_weak_consistency"])
+        need = int(LOOP_PROXIMITY_WEAK_CONSISTENCY)
         T = S @ kf.T_wc
         hist = [(k, S_) for k, S_ in self._weak if kf.id - k <= 4 * need]
         ok = 0
@@ -474,7 +499,7 @@ class LoopClosing:
             S, n_inl, kp, uv = res
             if not self.plausible_correction(kf, cand, S):
                 continue
-            if n_inl < int(self.p["loop_proximity_min_inliers"]) and \
+            if n_inl < int(LOOP_PROXIMITY_MIN_INLIERS) and \
                     not self._weak_consistent(kf, S):
                 continue
             # point fusion: kf's map points whose track ends on a cand keypoint with a map point
@@ -515,9 +540,9 @@ class LoopClosing:
         moved = float(np.linalg.norm(S[:3, :3] @ p + S[:3, 3] - p))
         cos = np.clip((np.trace(S[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
         rot = float(np.degrees(np.arccos(cos)))
-        allowed = (float(self.p["loop_max_drift"]) +
+        allowed = (float(LOOP_MAX_DRIFT) +
                    2.0 * np.sin(np.radians(rot) / 2.0)) * max(path, 1.0)
-        ok = moved <= allowed and rot <= float(self.p["loop_max_rotation_deg"])
+        ok = moved <= allowed and rot <= float(LOOP_MAX_ROTATION_DEG)
         if not ok:
             self.rejected.append((kf.id, cand.id, moved, rot, path))
         return ok
@@ -549,13 +574,13 @@ class LoopClosing:
         S, mask = ransac_se3(A, B, th)
         if S is None or mask.sum() < self.min_inliers:
             return None
-        if self.p["loop_reprojection_refine"] and \
+        if LOOP_REPROJECTION_REFINE and \
                 float(np.median(z[mask])) > kf.th_depth:   # far points: their 3-D fit is poor
             S = self.refine_by_reprojection(kf, S, a[i][mask], B[mask])
         ok, sig, turn = loop_rotation_check(
-            A[mask], B[mask], S, float(self.p["loop_max_rot_sigma_deg"]),
-            float(self.p["loop_rot_significance"]),
-            float(self.p["loop_rot_sigma_cap_deg"]))
+            A[mask], B[mask], S, float(LOOP_MAX_ROT_SIGMA_DEG),
+            float(LOOP_ROT_SIGNIFICANCE),
+            float(LOOP_ROT_SIGMA_CAP_DEG))
         if not ok:
             self.ill_conditioned.append((kf.id, cand.id, int(mask.sum()), sig, turn))
             return None
@@ -625,7 +650,7 @@ class LoopClosing:
         poses = {k.id: k.T_wc for k in mp.good_keyframes()}
         # edge information: with pose_graph_weights, shared map points / 100 (a link tracked on
         # a blank wall over 20 points is weaker than one over 500), loop edges by their inliers
-        weighted = bool(self.p["pose_graph_weights"])
+        weighted = bool(POSE_GRAPH_WEIGHTS)
 
         def wt(n):
             return max(float(n), 15.0) / 100.0 if weighted else None
@@ -677,7 +702,6 @@ class LoopClosing:
 
 
 def bow_score_safe(a, b) -> float:
-    from .vocabulary import bow_score
     return bow_score(a, b)
 
 

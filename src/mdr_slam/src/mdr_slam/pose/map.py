@@ -10,11 +10,15 @@ is what every vectorized query needs; "which keyframes see point p" is a vectori
 from __future__ import annotations
 
 import threading
+from types import SimpleNamespace
 from typing import Dict, List, Optional
 
 import numpy as np
+from scipy.spatial import cKDTree
 
-from ..geometry import inv_T
+from ..geometry import inv_T, transform_points
+from .frame import FeatureGrid
+from .optimizer import normalize_pose
 
 __all__ = ["Map", "KeyFrame", "MapPoint"]
 
@@ -55,6 +59,30 @@ class KeyFrame:
         self.bow = None                               # sparse BoW vector (word ids, weights)
         self.bow_words = None
 
+    @classmethod
+    def from_fields(cls, kf_id: int, frame_id: int, stamp: float, uv, octave, angle, desc, ur,
+                    depth, mp_ids, T_cw, fx: float, fy: float, cx: float, cy: float, bf: float,
+                    baseline: float, th_depth: float, scale, inv_level_sigma2, log_scale: float,
+                    nlevels: int, width: int, height: int, tex_w=None) -> "KeyFrame":
+        """A keyframe rebuilt from saved fields (pose.map_io) rather than from a Frame. It goes
+        through ``__init__`` with a stand-in frame, so attributes added there later get their
+        defaults here too; the caller sets bad, parent, T_cp, loop_edges and connections."""
+        uv = np.asarray(uv, np.float32).reshape(-1, 2)
+        fake = SimpleNamespace(
+            id=int(frame_id), stamp=float(stamp), uv=uv, octave=np.asarray(octave, np.int64),
+            angle=np.asarray(angle, np.float32), desc=np.asarray(desc, np.uint8).reshape(-1, 32),
+            ur=np.asarray(ur, np.float32), depth=np.asarray(depth, np.float32), N=len(uv),
+            fx=float(fx), fy=float(fy), cx=float(cx), cy=float(cy), bf=float(bf),
+            baseline=float(baseline), th_depth=float(th_depth),
+            scale=np.asarray(scale, np.float64),
+            inv_level_sigma2=np.asarray(inv_level_sigma2, np.float64),
+            log_scale=float(log_scale), nlevels=int(nlevels), width=int(width),
+            height=int(height), mp_ids=np.asarray(mp_ids, np.int64), texture_tau=0.0,
+            T_cw=np.asarray(T_cw, np.float64))
+        kf = cls(int(kf_id), fake)
+        kf.tex_w = None if tex_w is None else np.asarray(tex_w, np.float32).reshape(-1, 2)
+        return kf
+
     @property
     def T_wc(self) -> np.ndarray:
         return inv_T(self.T_cw)
@@ -63,7 +91,6 @@ class KeyFrame:
     def tree(self):
         """k-d tree of the keypoints (nearest keypoint of a pixel: loop point fusion)."""
         if self._tree is None:
-            from scipy.spatial import cKDTree
             self._tree = cKDTree(self.uv.astype(np.float64))
         return self._tree
 
@@ -71,16 +98,13 @@ class KeyFrame:
     def grid(self):
         """The keypoints' FeatureGrid (ORBmatcher projection searches into a keyframe)."""
         if self._grid is None:
-            from .frame import FeatureGrid
             self._grid = FeatureGrid(self.uv)
         return self._grid
 
     def set_pose(self, T_cw: np.ndarray) -> None:
-        from .optimizer import normalize_pose
         self.T_cw = normalize_pose(np.asarray(T_cw, dtype=float))
 
     def stereo_points_world(self, idx: np.ndarray) -> np.ndarray:
-        from ..geometry import transform_points
         z = self.depth[idx].astype(float)
         P = np.stack([(self.uv[idx, 0] - self.cx) * z / self.fx,
                       (self.uv[idx, 1] - self.cy) * z / self.fy, z], axis=1)
@@ -125,6 +149,7 @@ class Map:
         self.n = 0
         self._alloc(capacity)
         self.n_loop_closures = 0
+        self.loaded_next_kf_id = 0    # keyframes with smaller ids were loaded (pose.map_io)
 
     def _alloc(self, cap: int) -> None:
         def grow(name, shape, dtype, fill=0):

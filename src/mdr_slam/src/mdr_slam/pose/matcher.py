@@ -13,6 +13,7 @@ from typing import Optional, Tuple
 
 import numpy as np
 
+from ..geometry import transform_points
 from .orb import TH_HIGH, TH_LOW, hamming, hamming_knn2
 
 __all__ = ["ORBmatcher"]
@@ -117,7 +118,6 @@ class ORBmatcher:
     # ------------------------------------------------------------------ tracking searches
     def search_by_projection_last(self, frame, last, map_, th: float) -> int:
         """Project the last frame's map points with the predicted pose (motion model)."""
-        from ..geometry import transform_points
         sel = np.nonzero((last.mp_ids >= 0) & ~last.outlier)[0]
         if len(sel) == 0:
             return 0
@@ -144,7 +144,6 @@ class ORBmatcher:
         """SearchByProjection for local map points ``ids`` (frustum test included).
 
         Returns (matches, ids that were in the frustum) so the caller increases their 'visible'."""
-        from ..geometry import transform_points
         if len(ids) == 0:
             return 0, ids
         Twc = frame.T_wc

@@ -15,6 +15,7 @@ from __future__ import annotations
 import itertools
 from typing import Dict, List, Optional, Tuple
 
+import cv2
 import numpy as np
 import scipy.sparse as sp
 from scipy.spatial.transform import Rotation
@@ -288,14 +289,12 @@ def _inv3(A: np.ndarray) -> np.ndarray:
 def _log_so3(R: np.ndarray) -> np.ndarray:
     """Rotation vector of a rotation matrix (cv2.Rodrigues: 5 us against 10 for the arccos
     formula in numpy, for a single matrix inside the pose-only Gauss-Newton loop)."""
-    import cv2
     return cv2.Rodrigues(np.ascontiguousarray(R, dtype=np.float64))[0].ravel()
 
 
 def _exp_se3_left(dx: np.ndarray, T: np.ndarray) -> np.ndarray:
     """[R(dx[3:]) | dx[:3]] @ T with R from cv2.Rodrigues (the pose update of the pose-only
     optimization; 16 us against 40 for Rodrigues' formula written in numpy)."""
-    import cv2
     R = cv2.Rodrigues(np.ascontiguousarray(dx[3:], dtype=np.float64))[0]
     out = np.empty((4, 4))
     out[:3, :3] = R @ T[:3, :3]
@@ -489,7 +488,6 @@ class Optimizer:
                 sel = np.nonzero(k.mp_ids >= 0)[0]
                 sel = sel[mark[k.mp_ids[sel]]]
                 obs_list.append((k, sel, k.mp_ids[sel]))
-        C_ids = [k.id for k in kfs]
         Ts = np.array([k.T_cw for k in kfs])
         fixed_mask = np.array([k.id in fixed_ids for k in kfs])
         lookup = np.full(map_.n, -1, dtype=np.int64)

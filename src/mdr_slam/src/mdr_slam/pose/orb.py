@@ -11,6 +11,7 @@ from __future__ import annotations
 import operator
 from typing import Tuple
 
+import cv2
 import numpy as np
 
 __all__ = ["ORBextractor", "hamming", "hamming_matrix", "hamming_knn2", "expand_ranges", "TH_HIGH",
@@ -74,7 +75,6 @@ def hamming_knn2(a: np.ndarray, b: np.ndarray):
     n = len(a)
     if n == 0 or len(b) == 0:
         return np.full((n, 2), 256, np.int32), -np.ones((n, 2), np.int64)
-    import cv2
     d, i = cv2.batchDistance(np.ascontiguousarray(a), np.ascontiguousarray(b), cv2.CV_32S,
                              normType=cv2.NORM_HAMMING, K=2)
     d, i = d.reshape(n, -1), i.reshape(n, -1).astype(np.int64)
@@ -123,7 +123,6 @@ class ORBextractor:
     def __init__(self, nfeatures: int = 1500, scale_factor: float = 1.2, nlevels: int = 8,
                  fast_threshold: int = 12, grid: Tuple[int, int] = (12, 8), edge: int = 19,
                  min_fast_threshold: int = 0):
-        import cv2
         self.nfeatures = int(nfeatures)
         self.scale_factor = float(scale_factor)
         self.nlevels = int(nlevels)
@@ -157,7 +156,6 @@ class ORBextractor:
     def pyramid(self, image: np.ndarray) -> list:
         """The level images as cv2.ORB makes them (each from the previous one, INTER_LINEAR_EXACT,
         size rounded from the full image's), so the corners found here are the ones it describes."""
-        import cv2
         h, w = image.shape[:2]
         levels = [image]
         for s in self.scale[1:]:
@@ -168,7 +166,6 @@ class ORBextractor:
     def _fast(self, detector, levels) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
         """FAST corners of every level away from the border: level coordinates (N, 2) float32,
         FAST score (N,), level (N,)."""
-        import cv2
         xy, resp, lev = [], [], []
         for lv, img in enumerate(levels):
             kps = detector.detect(img, None)
@@ -258,7 +255,6 @@ class ORBextractor:
 
     def __call__(self, image: np.ndarray):
         """(uv (N, 2) float32, octave (N,) int, angle (N,) float32, descriptors (N, 32) uint8)."""
-        import cv2
         empty = (np.zeros((0, 2), np.float32), np.zeros(0, int), np.zeros(0, np.float32),
                  np.zeros((0, 32), np.uint8))
         levels = self.pyramid(image)

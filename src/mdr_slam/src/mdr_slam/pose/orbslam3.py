@@ -1,7 +1,7 @@
 """Optional pose backend: ORB-SLAM3's C++ stereo tracker (PyPI ``pyorbslam3``) behind System's API.
 
     from mdr_slam.pose import make_system
-    system = make_system(camera, dict(params, backend="orbslam3"), threads=True)
+    system = make_system(camera, {"backend": "orbslam3"}, threads=True)   # or TrackerConfig(backend=...)
 
 ``ORBSLAM3System`` answers what the pose node and ``mdr run`` ask of :class:`System`
 (``make_frame``, ``track`` -> :class:`TrackResult`, ``trajectory``, ``keyframe_poses``,
@@ -41,16 +41,19 @@ import tempfile
 import time
 from typing import Dict, List, Optional, Tuple
 
+import cv2
 import numpy as np
 
 from ..geometry import relative_motion
 from ..io import Trajectory, atomic_path, read_tum
-from .params import DEFAULT_PARAMS
+from .config import TrackerConfig
 from .result import TrackResult
 from .tracking import LOST, NOT_INITIALIZED, OK
 from .vocabulary import default_vocabulary_path, load_vocabulary
 
 __all__ = ["ORBSLAM3System", "available", "import_error", "export_dbow2_text", "settings_yaml"]
+
+KEYFRAME_POLL = 1              # read ORB-SLAM3's keyframes back every N frames for /mdr/keyframes (0: never; ~1 ms)
 
 
 _IMPORT_ERROR = ""
@@ -97,13 +100,13 @@ def export_dbow2_text(voc, path: str) -> int:
     return len(rows) - 1
 
 
-def _vocabulary_file(params: dict) -> str:
-    given = str(params.get("orbslam3_vocabulary") or "")
+def _vocabulary_file(cfg: TrackerConfig) -> str:
+    given = str(cfg.orbslam3_vocabulary or "")
     if given:
         if not os.path.isfile(given):
             raise FileNotFoundError("orbslam3_vocabulary %s does not exist" % given)
         return given
-    src = str(params.get("vocabulary") or "") or default_vocabulary_path()
+    src = str(cfg.vocabulary or "") or default_vocabulary_path()
     voc = load_vocabulary(src if os.path.isfile(src) else None)
     key = hashlib.sha1(b"".join(np.ascontiguousarray(c).tobytes() for c in voc.levels) +
                        np.asarray(voc.idf, np.float32).tobytes()).hexdigest()[:12]
@@ -128,7 +131,7 @@ def _real(x) -> str:
     return r if ("." in r or "e" in r or "n" in r) else r + ".0"
 
 
-def settings_yaml(camera, params: dict) -> str:
+def settings_yaml(camera, cfg: TrackerConfig) -> str:
     """ORB-SLAM3 settings (OpenCV YAML, the pre-1.0 layout: a rectified pinhole pair by fx, fy,
     cx, cy and bf) from a StereoCamera and the tracker's parameters."""
     w, h = camera.size
@@ -140,15 +143,15 @@ def settings_yaml(camera, params: dict) -> str:
         "Camera.k1: 0.0", "Camera.k2: 0.0", "Camera.p1: 0.0", "Camera.p2: 0.0",
         "Camera.width: %d" % w, "Camera.height: %d" % h,
         # ORB-SLAM uses fps as the largest gap between keyframes (frames): max_frames here
-        "Camera.fps: %d" % max(1, int(params.get("max_frames", 20))),
+        "Camera.fps: %d" % max(1, int(cfg.max_frames)),
         "Camera.bf: %s" % _real(camera.fx * camera.baseline),
         "Camera.RGB: 1",
-        "ThDepth: %s" % _real(params.get("th_depth", 35.0)),
-        "ORBextractor.nFeatures: %d" % int(params.get("n_features", 1500)),
-        "ORBextractor.scaleFactor: %s" % _real(params.get("scale_factor", 1.2)),
-        "ORBextractor.nLevels: %d" % int(params.get("n_levels", 8)),
-        "ORBextractor.iniThFAST: %d" % int(params.get("fast_threshold", 20)),
-        "ORBextractor.minThFAST: %d" % max(1, int(params.get("min_fast_threshold", 7) or 7)),
+        "ThDepth: %s" % _real(cfg.th_depth),
+        "ORBextractor.nFeatures: %d" % int(cfg.n_features),
+        "ORBextractor.scaleFactor: %s" % _real(cfg.scale_factor),
+        "ORBextractor.nLevels: %d" % int(cfg.n_levels),
+        "ORBextractor.iniThFAST: %d" % int(cfg.fast_threshold),
+        "ORBextractor.minThFAST: %d" % max(1, int(cfg.min_fast_threshold or 7)),
         # the viewer is never started, but ORB-SLAM3 reads these keys
         "Viewer.KeyFrameSize: 0.05", "Viewer.KeyFrameLineWidth: 1.0",
         "Viewer.GraphLineWidth: 0.9", "Viewer.PointSize: 2.0", "Viewer.CameraSize: 0.08",
@@ -196,11 +199,10 @@ class _Pair:
 class ORBSLAM3System:
     """:class:`System`'s interface over ``pyorbslam3.Slam`` (Sensor.STEREO)."""
 
-    def __init__(self, camera, params: Optional[dict] = None, threads: bool = True,
+    def __init__(self, camera, config=None, threads: bool = True,
                  T_map_cam0: Optional[np.ndarray] = None):
         import pyorbslam3
-        self.p = dict(DEFAULT_PARAMS)
-        self.p.update(params or {})
+        self.cfg = TrackerConfig.of(config)
         self.camera = camera
         self.threads = bool(threads)   # ORB-SLAM3 always runs its mapping threads
         self.T_map_world = np.eye(4) if T_map_cam0 is None else np.asarray(T_map_cam0, float)
@@ -208,10 +210,10 @@ class ORBSLAM3System:
         self._records: List[Tuple[float, Optional[np.ndarray], str]] = []
         self._loops = 0
         self._state = "NOT_INITIALIZED"
-        vocab = _vocabulary_file(self.p)
+        vocab = _vocabulary_file(self.cfg)
         fd, self._settings = tempfile.mkstemp(prefix="mdr_orbslam3_", suffix=".yaml")
         with os.fdopen(fd, "w") as f:
-            f.write(settings_yaml(camera, self.p))
+            f.write(settings_yaml(camera, self.cfg))
         self._states = {s: s.name for s in pyorbslam3.TrackingState.__members__.values()}
         fd, self._kf_file = tempfile.mkstemp(prefix="mdr_orbslam3_kfs_", suffix=".txt")
         os.close(fd)
@@ -224,14 +226,12 @@ class ORBSLAM3System:
 
     def make_frame(self, stamp: float, left_rect: np.ndarray, right_rect: np.ndarray) -> _Pair:
         if left_rect.ndim == 3:
-            import cv2
             left_rect = cv2.cvtColor(left_rect, cv2.COLOR_BGR2GRAY)
             right_rect = cv2.cvtColor(right_rect, cv2.COLOR_BGR2GRAY)
         doffs = float(getattr(self.camera, "doffs", 0.0))
         if abs(doffs) > 1e-3:
             # ORB-SLAM3's settings have one principal point for both cameras: the right image is
             # moved by the difference (StereoCamera.doffs) so its disparities mean f*B/Z
-            import cv2
             h, w = right_rect.shape[:2]
             right_rect = cv2.warpAffine(right_rect, np.float32([[1, 0, doffs], [0, 1, 0]]), (w, h),
                                         flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
@@ -265,7 +265,7 @@ class ORBSLAM3System:
         self._fed.append(frame.stamp)
         self._frames += 1
         new_kfs, corrections = None, None
-        poll = int(self.p.get("orbslam3_keyframe_poll", 1))
+        poll = int(KEYFRAME_POLL)
         if poll > 0 and self._frames % poll == 0:
             new_kfs, corrections = self.poll_keyframes()
         n = int(res.num_tracked_points)

@@ -31,6 +31,8 @@ from typing import Dict, Optional, Tuple
 
 import numpy as np
 
+from .optimizer import bundle_adjust
+
 __all__ = ["OffsetFit", "estimate_disparity_offset"]
 
 
@@ -91,7 +93,6 @@ def estimate_disparity_offset(map_, poses: Optional[Dict[int, np.ndarray]] = Non
     robust Gauss-Newton of the bundle adjustment with every camera fixed and no stereo term);
     its stereo observations are then fitted by robust (Huber) least squares
     ``u - ur = a * f*B/Z + e``. None when fewer than 30 observations qualify."""
-    from .optimizer import bundle_adjust
     with map_.lock:
         kfs, obs = _observations(map_, min_views, None if poses is None else set(poses))
         if obs is None or len(obs[0]) == 0:

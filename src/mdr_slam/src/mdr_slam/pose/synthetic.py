@@ -10,7 +10,9 @@ from __future__ import annotations
 
 from typing import List, Tuple
 
+import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from ..geometry import make_T
 
@@ -19,7 +21,6 @@ __all__ = ["BoxRoom", "orbit_trajectory"]
 
 class BoxRoom:
     def __init__(self, half_extent=(5.0, 2.0, 5.0), tex_size: int = 1024, seed: int = 0):
-        import cv2
         self.h = np.asarray(half_extent, dtype=float)
         rng = np.random.RandomState(seed)
         faces = []
@@ -34,7 +35,6 @@ class BoxRoom:
         self.atlas = np.concatenate(faces, axis=1)   # faces side by side
 
     def render(self, T_wc: np.ndarray, fx, fy, cx, cy, width, height) -> np.ndarray:
-        import cv2
         u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
         d = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], axis=-1) @ T_wc[:3, :3].T
         o = T_wc[:3, 3]
@@ -70,7 +70,6 @@ def orbit_trajectory(n: int, radius: float = 1.5, arc: float = 2 * np.pi, height
                      yaw_offset: float = 0.0) -> List[np.ndarray]:
     """Camera poses T_wc on a horizontal circle (y is down in the optical frame), looking along
     the tangent plus ``yaw_offset``; ``arc`` = 2 pi closes the loop."""
-    from scipy.spatial.transform import Rotation
     out = []
     for k in range(n):
         a = arc * k / max(1, n)

@@ -1,6 +1,6 @@
 """System: the stereo SLAM entry point (ORB-SLAM2 System) used by pose_node and `mdr run`.
 
-    sys = System(camera, params=None, threads=True)
+    sys = System(camera, config=None, threads=True)   # TrackerConfig or a dict of its fields
     res = sys.track(stamp, left_rect, right_rect)     # -> TrackResult
     traj = sys.trajectory()                            # mdr_slam.io.Trajectory (T_map_cam)
     sys.shutdown()
@@ -15,51 +15,62 @@ import threading
 import time
 from typing import Dict, Optional, Tuple
 
+import cv2
 import numpy as np
 
 from ..geometry import interpolate_poses, inv_T
 from ..io import Trajectory
+from .config import TrackerConfig
 from .frame import Frame
 from .local_mapping import LocalMapping
+from .loop_closing import LoopClosing
 from .map import Map
 from .orb import ORBextractor
-from .params import DEFAULT_PARAMS, NODE_KEYS
 from .result import TrackResult
 from .tracking import OK, RELOCALIZED, Tracking
 
-# DEFAULT_PARAMS, NODE_KEYS and TrackResult live in .params and .result (shared with the
-# orbslam3 backend); importable from here too. make_system: mdr_slam.pose.factory
-__all__ = ["System", "TrackResult", "DEFAULT_PARAMS", "NODE_KEYS"]
+# TrackerConfig and TrackResult live in .config and .result (shared with the orbslam3 backend);
+# make_system: mdr_slam.pose.factory
+__all__ = ["System", "TrackResult", "TrackerConfig"]
+
+# Tuned internals (where ORB-SLAM2 differs, its way in brackets)
+RELOC_CANDIDATES = 10          # LOST: keyframes tried for relocalization per frame
+TEXTURE_TAU = 10.0             # a keypoint's x (u, u_R) and y residuals weigh min(1, gradient energy / tau)
+                               # (grey levels^2, 7x7 patch; 0: isotropic, ORB-SLAM2)
+TRAJECTORY_BLEND = True        # frames between two keyframes follow both (false: the reference keyframe
+                               # only, ORB-SLAM2 SaveTrajectoryTUM)
+YIELD_MAX_MS = 60.0            # threads: mapping waits at most this long for a frame's tracking, so its
+                               # share of the GIL does not slow tracking (0: off)
+BACKPRESSURE_INLIERS = 80      # threads: tracking waits for LocalMapping when it gets this weak
 
 _REASONS = {"local_ba": 1, "loop_closure": 2}
 
 
 class System:
-    def __init__(self, camera, params: Optional[dict] = None, threads: bool = True,
+    def __init__(self, camera, config=None, threads: bool = True,
                  T_map_cam0: Optional[np.ndarray] = None):
         """``T_map_cam0``: the map frame the poses are reported in, as the pose of the first
         camera (tracking's own world) in it; REP-105 users pass T_base_cam so that map is
         base_link where tracking starts (z up for a level robot). Default identity: map is the
-        first camera's optical frame. Only outputs change; the tracker works in its own world."""
-        p = dict(DEFAULT_PARAMS)
-        if params:
-            params = {k: v for k, v in params.items() if k not in NODE_KEYS}
-            unknown = set(params) - set(p)
-            if unknown:
-                raise ValueError("unknown pose parameters: %s" % sorted(unknown))
-            p.update(params)
-        self.p = p
+        first camera's optical frame. Only outputs change; the tracker works in its own world.
+        ``config``: a TrackerConfig, or a mapping of its fields (unknown keys raise ConfigError)."""
+        self.cfg = TrackerConfig.of(config)
         self.camera = camera
         self.threads = bool(threads)
         self.T_map_world = np.eye(4) if T_map_cam0 is None else np.asarray(T_map_cam0, float)
-        self.extractor = ORBextractor(p["n_features"], p["scale_factor"], p["n_levels"],
-                                      p["fast_threshold"],
-                                      min_fast_threshold=p["min_fast_threshold"])
-        self.extractor_right = ORBextractor(p["n_features"], p["scale_factor"], p["n_levels"],
-                                            p["fast_threshold"],
-                                            min_fast_threshold=p["min_fast_threshold"])
+        self.extractor = ORBextractor(self.cfg.n_features, self.cfg.scale_factor, self.cfg.n_levels,
+                                      self.cfg.fast_threshold,
+                                      min_fast_threshold=self.cfg.min_fast_threshold)
+        self.extractor_right = ORBextractor(self.cfg.n_features, self.cfg.scale_factor, self.cfg.n_levels,
+                                            self.cfg.fast_threshold,
+                                            min_fast_threshold=self.cfg.min_fast_threshold)
         self.request_reset = False
         self.correction_id = 0
+        # localization mode (ORB-SLAM2 ActivateLocalizationMode): tracking against the map only,
+        # no new keyframes or points, so a loaded map is used and never changed
+        self.localization = False
+        self.map_loaded = False    # a saved map was loaded (pose.map_io): never reset it
+        self._created_before_reset = 0
         # threads: set while no frame is being tracked. LocalMapping and LoopClosing wait for it
         # between their steps and BA iterations (yield_to_tracking): Python runs one thread at a
         # time (the GIL), so without this a keyframe's BA takes half of tracking's turns and the
@@ -70,16 +81,11 @@ class System:
 
     def _build(self) -> None:
         self.map = Map()
-        self.local_mapping = LocalMapping(self, self.p)
+        self.local_mapping = LocalMapping(self, self.cfg)
         self.loop_closing = None
-        if self.p["loop_closing"]:
-            try:
-                from .loop_closing import LoopClosing
-            except ImportError:   # loop closing module not available: tracking + local mapping
-                LoopClosing = None
-            if LoopClosing is not None:
-                self.loop_closing = LoopClosing(self, self.p)
-        self.tracking = Tracking(self, self.p)
+        if self.cfg.loop_closing:
+            self.loop_closing = LoopClosing(self, self.cfg)
+        self.tracking = Tracking(self, self.cfg)
         if self.threads:
             self.local_mapping.start()
             if self.loop_closing is not None:
@@ -92,17 +98,17 @@ class System:
 
     def relocalization_candidates(self, frame) -> list:
         if self.loop_closing is not None:
-            c = self.loop_closing.relocalization_candidates(frame, self.p["reloc_candidates"])
+            c = self.loop_closing.relocalization_candidates(frame, RELOC_CANDIDATES)
             if c is not None:
                 return c
         kfs = self.map.good_keyframes()
-        return sorted(kfs, key=lambda k: -k.id)[: self.p["reloc_candidates"]]
+        return sorted(kfs, key=lambda k: -k.id)[: RELOC_CANDIDATES]
 
     def yield_to_tracking(self) -> None:
         """Called by the mapping threads where they hold no map lock: wait (at most
         ``yield_max_ms``) while a frame is being tracked, so tracking has the interpreter."""
         if self.threads and not self.tracking_idle.is_set():
-            self.tracking_idle.wait(float(self.p["yield_max_ms"]) / 1000.0)
+            self.tracking_idle.wait(float(YIELD_MAX_MS) / 1000.0)
 
     # ------------------------------------------------------------------ API
     def make_frame(self, stamp: float, left_rect: np.ndarray, right_rect: np.ndarray) -> Frame:
@@ -114,13 +120,12 @@ class System:
         t0 = time.perf_counter()
         c0 = time.thread_time()
         if left_rect.ndim == 3:
-            import cv2
             left_rect = cv2.cvtColor(left_rect, cv2.COLOR_BGR2GRAY)
             right_rect = cv2.cvtColor(right_rect, cv2.COLOR_BGR2GRAY)
         frame = Frame(stamp, left_rect, right_rect, self.camera, self.extractor,
-                      self.extractor_right, th_depth_factor=self.p["th_depth"])
+                      self.extractor_right, th_depth_factor=self.cfg.th_depth)
         frame.n_primary = getattr(self.extractor, "n_primary", frame.N)   # low-texture test
-        frame.texture_tau = float(self.p["texture_tau"])
+        frame.texture_tau = float(TEXTURE_TAU)
         frame.build_ms = 1000.0 * (time.perf_counter() - t0)
         frame.build_cpu_ms = 1000.0 * (time.thread_time() - c0)   # the right image's thread excluded
         return frame
@@ -130,7 +135,7 @@ class System:
         """Track one stereo pair (rectified images) or a Frame already made by ``make_frame``."""
         if frame is None:
             frame = self.make_frame(stamp, left_rect, right_rect)
-        if self.threads and self.p["yield_max_ms"] > 0:
+        if self.threads and YIELD_MAX_MS > 0:
             self.tracking_idle.clear()
         try:
             return self._track(frame)
@@ -154,7 +159,7 @@ class System:
         c_track = frame.build_cpu_ms + 1000.0 * (time.thread_time() - c0)
         self.tracking_idle.set()   # the mapping threads may go on (back-pressure waits for them)
         if self.threads and tracked_ok and self.local_mapping.queue_size() >= 2 and \
-                self.tracking.n_matches_inliers < self.p["backpressure_inliers"]:
+                self.tracking.n_matches_inliers < BACKPRESSURE_INLIERS:
             # back-pressure: weak tracking while LocalMapping lags (the GIL and a loaded CPU
             # starve its thread) would soon be LOST; let it catch up before the next frame
             self.local_mapping.wait_queue_below(2, timeout=1.0)
@@ -241,7 +246,7 @@ class System:
                 stamps.append(stamp)
                 Ts.append(self._current(T_c_ref, kf))
                 n = int(np.searchsorted(kf_idx, i, side="right"))   # kfr[n]: the next keyframe
-                if self.p["trajectory_blend"] and 0 < n < len(kfr):
+                if TRAJECTORY_BLEND and 0 < n < len(kfr):
                     ia = kf_idx[n - 1]
                     ib, kb, ref_b, T_b_ref = kfr[n]
                     # this frame relative to keyframe b as tracked: through their common
@@ -269,10 +274,22 @@ class System:
             kf = kf.parent
         return T @ kf.T_cw
 
+    def set_pose_guess(self, T_map_cam: np.ndarray) -> None:
+        """A pose for the next frame while LOST (rviz's 2D Pose Estimate): it is tried before
+        relocalization by bag of words."""
+        self.tracking.pose_guess = inv_T(inv_T(self.T_map_world) @ np.asarray(T_map_cam, float))
+
+    @property
+    def n_keyframes_created(self) -> int:
+        """Keyframes this run made (keyframes of a loaded map not counted)."""
+        return self._created_before_reset + self.tracking.n_keyframes_created
+
     def reset(self) -> None:
         """Start a new map (ORB-SLAM2 Reset after losing track right after initialisation).
         Frames of the discarded map are dropped from the trajectory."""
         self.request_reset = False
+        self.map_loaded = False
+        self._created_before_reset += self.tracking.n_keyframes_created
         self._stop_threads()
         self._build()
 

@@ -16,16 +16,55 @@ points, so the map keeps up with the few corners there are.
 """
 from __future__ import annotations
 
-from typing import Dict, List, Optional
+import time
+from typing import List, Optional
 
+import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from ..geometry import inv_T
-from .frame import Frame
-from .matcher import ORBmatcher
+from .frame import Frame, gradient_energy
+from .matcher import ORBmatcher, _unique_by, rotation_consistency
 from .optimizer import Optimizer, normalize_pose, project_residuals
+from .orb import TH_LOW, hamming_knn2
 
 __all__ = ["Tracking", "NOT_INITIALIZED", "OK", "LOST", "RELOCALIZED"]
+
+# Tuned internals (ORB-SLAM2 Tracking's counterpart in brackets where there is one)
+MIN_INIT_POINTS = 100          # stereo points needed to initialise (StereoInitialization: 500)
+MIN_FRAMES = 0                 # frames after a keyframe before an idle LocalMapping may take one (mMinFrames: 0)
+TH_REF_RATIO = 0.75            # keyframe when inliers < this x the reference keyframe's points (thRefRatio)
+MIN_CLOSE_POINTS = 100         # a new keyframe adds far stereo points only past this many close ones
+                               # (CreateNewKeyFrame: 100)
+CLOSE_TRACKED_RATIO = 0.45     # also a keyframe (LocalMapping idle) when fewer than this share of the
+                               # close stereo points is tracked (bNeedToInsertClose: < 100 tracked, > 70 not)
+MAX_LOCAL_KEYFRAMES = 60       # keyframes of the local map frames are tracked against (UpdateLocalKeyFrames: 80)
+RESET_IF_LOST_BELOW_KFS = 3    # LOST with at most this many keyframes: the map is reset (Track: 5)
+MIN_INLIERS = 30               # local-map inliers for OK (TrackLocalMap: 30)
+LOW_TEXTURE_POINTS = 150       # frames needing the FAST fallback or with fewer stereo keypoints are
+                               # low-texture ...
+MIN_INLIERS_LOW_TEXTURE = 15   # ... and are tracked OK with this many inliers
+LOST_COAST_S = 0.5             # LOST: motion-model / wide / frame-to-frame tracking from the last tracked
+                               # frame goes on this long before only relocalization (0: ORB-SLAM2)
+MOTION_PRIOR_ACC = 4.0         # pose-only optimization pulled toward the constant-velocity prediction with
+MOTION_PRIOR_ANG_ACC = 120.0   # sigmas acc * dt^2 (m/s^2) and ang_acc * dt^2 (deg/s^2) (0: off, ORB-SLAM2)
+SHADING_MAX_SPREAD = 0.3       # inliers spanning less of the image width: the last frame's shading joins
+SHADING_MAX_CLOSE = 0.2        # ... when at most this share of them is within th_depth (a far view) ...
+SHADING_CELL = 32              # ... one point per cell of this many px (refine_on_one_patch) ...
+SHADING_MIN_EIG = 6e-5         # ... where the structure tensor's smaller eigenvalue exceeds this ...
+SHADING_WEIGHT = 4.0           # ... with this information (1/px^2) in the pose-only optimization
+RELOC_MAX_MS = 60.0            # LOST: no further relocalization candidate after this (wall ms per frame)
+FLOW_TRACKING = True           # optical-flow fallback when the motion model fails (blank walls)
+FLOW_WINDOW = 21               # Lucas-Kanade window (px) ...
+FLOW_LEVELS = 3                # ... pyramid levels above full resolution ...
+FLOW_FB_PX = 1.0               # ... and forward-backward disagreement allowed (px)
+FLOW_PNP_MIN_TEXTURE = 10.0    # PnP on the tracks whose patch has this x and y gradient energy ...
+FLOW_PNP_MIN_TRACKS = 15       # ... when at least this many (else all tracks)
+WIDE_SEARCH_TH = 6.0
+GUESS_KEYFRAMES = 5            # a pose guess is tried against the map points of this many nearest keyframes,
+GUESS_METRES_PER_RADIAN = 1.0  # ranked by distance + this x the angle between optical axes           # local-map projection window (x4 px x scale) when both the motion model and
+                               # the reference keyframe fail
 
 NOT_INITIALIZED = "NOT_INITIALIZED"
 OK = "OK"
@@ -35,7 +74,6 @@ RELOCALIZED = "RELOCALIZED"
 
 def _set_pnp_pose(frame: Frame, rvec, tvec) -> None:
     """The frame takes a PnP pose (cv2 rotation vector, translation) and starts unmatched."""
-    import cv2
     T = np.eye(4)
     T[:3, :3] = cv2.Rodrigues(rvec)[0]
     T[:3, 3] = np.ravel(tvec)
@@ -45,9 +83,9 @@ def _set_pnp_pose(frame: Frame, rvec, tvec) -> None:
 
 
 class Tracking:
-    def __init__(self, system, params: dict):
+    def __init__(self, system, cfg):
         self.system = system
-        self.p = params
+        self.cfg = cfg            # TrackerConfig
         self.map = system.map
         self.extractor = system.extractor
         self.matcher = ORBmatcher(check_orientation=True)
@@ -70,10 +108,11 @@ class Tracking:
         # (index in records, keyframe, reference keyframe before it, T_c_ref to that) of every
         # keyframe made from a tracked frame
         self.kf_records: List[tuple] = []
+        self.pose_guess: Optional[np.ndarray] = None   # T_cw to try on the next frame (set_pose_guess)
+        self.n_keyframes_created = 0                   # by this run's frames (a loaded map's not counted)
 
     # ------------------------------------------------------------------ entry
     def track(self, frame: Frame) -> dict:
-        import time
         mp = self.map
         out = {"is_keyframe": False, "keyframe_id": -1}
         t0 = time.perf_counter()
@@ -83,6 +122,7 @@ class Tracking:
             if self.state == NOT_INITIALIZED:
                 if self.stereo_initialization(frame):
                     self.state = OK
+                    self.n_keyframes_created += 1
                     out.update(is_keyframe=True, keyframe_id=self.ref_kf.id)
                 self._record(frame, self.state == OK)
                 if out["is_keyframe"]:
@@ -93,14 +133,19 @@ class Tracking:
             relocalized = False
             coasting = self.state == LOST and self.can_coast(frame)
             ok = False
+            guess, self.pose_guess = self.pose_guess, None
+            if guess is not None and self.state == LOST:
+                ok = relocalized = self.track_from_guess(frame, guess)
+                if ok:
+                    ok = self.track_local_map(frame)
             frame.prior = None
             if (self.state in (OK, RELOCALIZED) or coasting) and self.velocity is not None and \
                     frame.id > self.last_reloc_frame_id + 1:
                 frame.prior = self.motion_prior(frame)
-            if self.state in (OK, RELOCALIZED) or coasting:
+            if not ok and (self.state in (OK, RELOCALIZED) or coasting):
                 if self.velocity is not None and frame.id > self.last_reloc_frame_id + 1:
                     ok = self.track_with_motion_model(frame)
-                if not ok and self.p["flow_tracking"]:
+                if not ok and FLOW_TRACKING:
                     ok = self.track_last_frame_flow(frame)
                 if not ok:
                     ok = self.track_reference_keyframe(frame)
@@ -114,7 +159,7 @@ class Tracking:
             prior, frame.prior = frame.prior, None   # relocalization and the keyframe go without it
             if ok:
                 self.refine_on_one_patch(frame, prior)
-            if self.state == LOST and not ok:
+            if self.state == LOST and not ok and not relocalized:
                 ok = self.relocalization(frame)
                 relocalized = ok
                 frame.ref_kf = self.ref_kf
@@ -128,14 +173,16 @@ class Tracking:
                 # drop outliers before the keyframe decision (ORB-SLAM2 end of Track)
                 frame.mp_ids[frame.outlier] = -1
                 frame.outlier[:] = False
-                if self.need_new_keyframe(frame):
+                if not self.system.localization and self.need_new_keyframe(frame):
                     kf = self.create_new_keyframe(frame)
+                    self.n_keyframes_created += 1
                     out.update(is_keyframe=True, keyframe_id=kf.id)
             else:
                 self.state = LOST
                 if not self.can_coast(frame):
                     self.velocity = None
-                if len(mp.good_keyframes()) <= self.p["reset_if_lost_below_kfs"]:
+                if len(mp.good_keyframes()) <= RESET_IF_LOST_BELOW_KFS and \
+                        not self.system.map_loaded:   # a loaded map is never thrown away
                     self.system.request_reset = True
             self._record(frame, ok)
             if out["is_keyframe"]:
@@ -161,7 +208,7 @@ class Tracking:
     def stereo_initialization(self, frame: Frame) -> bool:
         """First frame with enough stereo points becomes keyframe 0 at the origin."""
         stereo = np.nonzero(frame.depth > 0)[0]
-        if len(stereo) < self.p["min_init_points"]:
+        if len(stereo) < MIN_INIT_POINTS:
             return False
         frame.set_pose(np.eye(4))
         kf = self.map.new_keyframe(frame)
@@ -203,7 +250,6 @@ class Tracking:
         r = dt / self.velocity_dt
         if abs(r - 1.0) <= 0.05:
             return V
-        from scipy.spatial.transform import Rotation
         r = min(r, 10.0)   # a long gap: extrapolating further only misleads the search
         out = np.eye(4)
         out[:3, :3] = Rotation.from_rotvec(r * Rotation.from_matrix(V[:3, :3]).as_rotvec()).as_matrix()
@@ -219,7 +265,7 @@ class Tracking:
         robot's or a walking person's accelerations are around these, so the prior is weak next
         to a few hundred well-spread features, and decides only what the images leave open
         (features on one small patch: lateral translation vs yaw)."""
-        acc, ang = float(self.p["motion_prior_acc"]), float(self.p["motion_prior_ang_acc"])
+        acc, ang = float(MOTION_PRIOR_ACC), float(MOTION_PRIOR_ANG_ACC)
         last = self.last_frame
         if acc <= 0 or ang <= 0 or last is None or last.T_cw is None:
             return None
@@ -239,13 +285,13 @@ class Tracking:
         an already mapped view, cannot."""
         last = self.last_frame
         return (self.velocity is not None and last is not None and last.T_cw is not None and
-                0.0 < frame.stamp - last.stamp <= float(self.p["lost_coast_s"]))
+                0.0 < frame.stamp - last.stamp <= float(LOST_COAST_S))
 
     def low_texture(self, frame: Frame) -> bool:
         """Few stereo keypoints (blank walls): thresholds written for 1000+ features relax."""
-        if getattr(frame, "n_primary", self.p["n_features"]) < self.p["n_features"]:
+        if getattr(frame, "n_primary", self.cfg.n_features) < self.cfg.n_features:
             return True   # the FAST fallback was needed (ORBextractor.n_primary)
-        return int(np.count_nonzero(frame.depth > 0)) < self.p["low_texture_points"]
+        return int(np.count_nonzero(frame.depth > 0)) < LOW_TEXTURE_POINTS
 
     def track_with_motion_model(self, frame: Frame) -> bool:
         self._update_last_frame()
@@ -274,19 +320,43 @@ class Tracking:
         if not pts:
             return False
         pts = np.unique(np.concatenate(pts))
-        n, _ = self.matcher.search_local_points(frame, self.map, pts, th=self.p["wide_search_th"])
+        n, _ = self.matcher.search_local_points(frame, self.map, pts, th=WIDE_SEARCH_TH)
         if n < 10:
             return False
         Optimizer.pose_optimization(frame, self.map)
         return self._discard_outliers(frame) >= 10
+
+    def track_from_guess(self, frame: Frame, T_cw: np.ndarray) -> bool:
+        """LOST with a pose from outside (rviz's 2D Pose Estimate on /initialpose): the points of
+        the keyframes nearest to it projected with a wide window, then pose-only optimization."""
+        kfs = self.map.good_keyframes()
+        if not kfs:
+            return False
+        C = inv_T(T_cw)[:3, 3]
+        z = inv_T(T_cw)[:3, 2]
+        near = sorted(kfs, key=lambda k: np.linalg.norm(k.T_wc[:3, 3] - C) +
+                      GUESS_METRES_PER_RADIAN * np.arccos(np.clip(k.T_wc[:3, 2] @ z, -1.0, 1.0)))
+        self.ref_kf = near[0]
+        self.local_kfs = near[1:GUESS_KEYFRAMES]
+        frame.set_pose(T_cw)
+        frame.mp_ids[:] = -1
+        frame.outlier[:] = False
+        pts = np.unique(np.concatenate([k.valid_mp_ids(self.map.mp_bad) for k in near[:GUESS_KEYFRAMES]]))
+        n, _ = self.matcher.search_local_points(frame, self.map, pts, th=WIDE_SEARCH_TH)
+        if n < MIN_INLIERS:
+            return False
+        Optimizer.pose_optimization(frame, self.map)
+        if self._discard_outliers(frame) < MIN_INLIERS:
+            return False
+        self.last_reloc_frame_id = frame.id
+        frame.ref_kf = self.ref_kf
+        return True
 
     def track_last_frame_pnp(self, frame: Frame) -> bool:
         """Frame-to-frame fallback (not in ORB-SLAM2): descriptors of every stereo keypoint of the
         last frame, mapped or not, matched against the frame, PnP RANSAC on their 3-D points,
         then the local map projected with that pose. Needs no motion prior, so it carries sudden
         turns (pure rotation starts) and low-texture views where few keypoints are map points."""
-        import cv2
-        from .orb import TH_LOW, hamming_knn2
         last = self.last_frame
         if last is None or last.T_cw is None:
             return False
@@ -298,7 +368,6 @@ class Tracking:
         b, d1, d2 = b12[:, 0], d12[:, 0], d12[:, 1]
         ok = (d1 <= TH_LOW) & (d1 < 0.8 * d2)
         ia, jb = np.nonzero(ok)[0], b[ok]
-        from .matcher import _unique_by, rotation_consistency
         u_ = _unique_by(jb, d1[ok])
         ia, jb = ia[u_], jb[u_]
         if len(ia) >= 10:
@@ -330,15 +399,13 @@ class Tracking:
         return self._discard_outliers(frame) >= 10
 
     def _lk(self):
-        import cv2
-        win = int(self.p["flow_window"])
-        return dict(winSize=(win, win), maxLevel=int(self.p["flow_levels"]),
+        win = int(FLOW_WINDOW)
+        return dict(winSize=(win, win), maxLevel=int(FLOW_LEVELS),
                     criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))
 
     def _flow(self, img0, img1, p0, p1):
         """Pyramidal Lucas-Kanade from ``p0`` in img0 to img1 started at ``p1``, checked back
         (forward-backward disagreement <= flow_fb_px): (tracked positions, ok mask)."""
-        import cv2
         lk = self._lk()
         p0 = np.ascontiguousarray(p0, np.float32).reshape(-1, 1, 2)
         q, st, _ = cv2.calcOpticalFlowPyrLK(img0, img1, p0, np.ascontiguousarray(
@@ -347,7 +414,7 @@ class Tracking:
                                              flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
         q, b = q.reshape(-1, 2), b.reshape(-1, 2)
         ok = ((st.ravel() == 1) & (st2.ravel() == 1) &
-              (np.linalg.norm(b - p0.reshape(-1, 2), axis=1) <= float(self.p["flow_fb_px"])))
+              (np.linalg.norm(b - p0.reshape(-1, 2), axis=1) <= float(FLOW_FB_PX)))
         return q, ok
 
     def _flow_from_last(self, frame: Frame, sel: np.ndarray, T_pred: np.ndarray):
@@ -376,7 +443,6 @@ class Tracking:
         and angle (cv2.ORB.compute keeps a given angle and drops keypoints at the border), stereo
         by a left-right flow started at the disparity the map point predicts with the frame's
         pose (kept when on the row, consistent both ways and near that prediction)."""
-        import cv2
         last = self.last_frame
         octv = last.octave[sel]
         sc = frame.scale[octv]
@@ -420,7 +486,6 @@ class Tracking:
         so descriptor matching finds almost nothing from one frame to the next, while the patches
         around them (the faint texture) are still followed by the flow: tracks then outlive the
         corners, and the map points keep being observed instead of being replaced every frame."""
-        import cv2
         last = self.last_frame
         if last is None or last.T_cw is None:
             return False
@@ -440,11 +505,10 @@ class Tracking:
         # problem), and the stereo depth there is noise too (office loop seed 10's first frames:
         # 90 % of the tracks on the specular band's flanks, a 2 cm step taken as a 0.4 deg turn)
         fit = np.arange(len(sel))
-        th = float(self.p["flow_pnp_min_texture"])
+        th = float(FLOW_PNP_MIN_TEXTURE)
         if th > 0:
-            from .frame import gradient_energy
             well = np.nonzero(np.min(gradient_energy(last.image, last.uv[sel]), axis=1) >= th)[0]
-            if len(well) >= int(self.p["flow_pnp_min_tracks"]):
+            if len(well) >= int(FLOW_PNP_MIN_TRACKS):
                 fit = well
         okp, rvec, tvec, inl = cv2.solvePnPRansac(
             Pw[fit].astype(np.float64), p1[fit].astype(np.float64), K, None,
@@ -474,12 +538,11 @@ class Tracking:
         their depth from a Lucas-Kanade flow into the right image, started at the disparity of
         the frame's median stereo keypoint (kept on the row, consistent both ways). Returns
         (world points (M, 3), their left-image positions (M, 2)) or None."""
-        import cv2
         last = self.last_frame
         img, right = last.image, last.right_image
         if img is None or right is None:
             return None
-        c = int(self.p["shading_cell"])
+        c = int(SHADING_CELL)
         half = cv2.pyrDown(img)
         eig = cv2.cornerMinEigenVal(half, blockSize=7, ksize=3)
         ch = max(2, c // 2)
@@ -492,7 +555,7 @@ class Tracking:
         gy, gx = np.mgrid[0:gh, 0:gw]
         v = gy * ch + k // ch
         u = gx * ch + k % ch
-        ok = best > float(self.p["shading_min_eig"])
+        ok = best > float(SHADING_MIN_EIG)
         p0 = (np.column_stack([u[ok], v[ok]]).astype(np.float32) * 2.0 + 0.5)
         edge = 24.0
         p0 = p0[(p0[:, 0] >= edge) & (p0[:, 0] < last.width - edge) &
@@ -525,7 +588,7 @@ class Tracking:
         of the last frame are followed into this one by Lucas-Kanade and join the pose-only
         optimization as monocular observations (points placed by the last frame's pose and
         their stereo depth), with the map points as before. Returns the shading points used."""
-        if float(self.p["shading_max_spread"]) <= 0:
+        if float(SHADING_MAX_SPREAD) <= 0:
             return 0
         last = self.last_frame
         if last is None or last.T_cw is None or frame.T_cw is None:
@@ -535,10 +598,10 @@ class Tracking:
             return 0
         u = frame.uv[inl, 0]
         if np.percentile(u, 95) - np.percentile(u, 5) >= float(
-                self.p["shading_max_spread"]) * frame.width:
+                SHADING_MAX_SPREAD) * frame.width:
             return 0
         close = (frame.depth[inl] > 0) & (frame.depth[inl] < frame.th_depth)
-        if np.count_nonzero(close) > float(self.p["shading_max_close"]) * len(inl):
+        if np.count_nonzero(close) > float(SHADING_MAX_CLOSE) * len(inl):
             return 0   # near points: stereo depth and parallax already separate the two
         got = self.shading_points()
         if got is None:
@@ -566,7 +629,7 @@ class Tracking:
             np.concatenate([frame.uv[idx], p1.astype(frame.uv.dtype)]),
             np.concatenate([frame.ur[idx], -np.ones(m, frame.ur.dtype)]),
             np.concatenate([frame.octave[idx], np.full(m, lv, frame.octave.dtype)]),
-            np.append(frame.inv_level_sigma2, float(self.p["shading_weight"])),
+            np.append(frame.inv_level_sigma2, float(SHADING_WEIGHT)),
             np.concatenate([self.map.mp_pos[ids], Pw]),
             bad=np.concatenate([self.map.mp_bad[ids], np.zeros(m, bool)]), prior=prior)
         if n_inl < 10:
@@ -589,10 +652,8 @@ class Tracking:
         """Candidate keyframes (BoW database when a vocabulary is loaded, else the most recent),
         descriptor matches, PnP RANSAC (cv2.solvePnPRansac), pose-only optimization, and a guided
         projection search of the candidate's covisible points (ORB-SLAM2 Relocalization)."""
-        import time
-        import cv2
         t0 = time.perf_counter()
-        budget = float(self.p["reloc_max_ms"]) / 1000.0
+        budget = float(RELOC_MAX_MS) / 1000.0
         cands = self.system.relocalization_candidates(frame)
         # bounded per frame: candidates not tried by the last LOST frames go first, and after
         # the first candidate no new one starts once reloc_max_ms (wall) is spent; the next
@@ -669,7 +730,7 @@ class Tracking:
         k1 = sorted(counts, key=lambda k: -counts[k])
         local = [cand[k] for k in k1]
         seen = set(k1)
-        max_kfs = self.p["max_local_keyframes"]
+        max_kfs = MAX_LOCAL_KEYFRAMES
         for kf in list(local):
             if len(local) >= max_kfs:
                 break
@@ -709,8 +770,8 @@ class Tracking:
         mp.mp_found[ids] += 1
         self.n_matches_inliers = int(np.count_nonzero(inl))
         low = self.low_texture(frame)
-        need = self.p["min_inliers_low_texture" if low else "min_inliers"]
-        if frame.id < self.last_reloc_frame_id + self.p["max_frames"]:
+        need = MIN_INLIERS_LOW_TEXTURE if low else MIN_INLIERS
+        if frame.id < self.last_reloc_frame_id + self.cfg.max_frames:
             # ORB-SLAM2 asks 50 inliers for a second after a relocalization; a blank-wall view
             # never has 50, so there it is twice the low-texture minimum (else every
             # relocalization there was followed by a second of LOST frames)
@@ -722,7 +783,7 @@ class Tracking:
         mp = self.map
         lm = self.system.local_mapping
         n_kfs = len(mp.good_keyframes())
-        max_frames, min_frames = self.p["max_frames"], self.p["min_frames"]
+        max_frames, min_frames = self.cfg.max_frames, MIN_FRAMES
         if frame.id < self.last_reloc_frame_id + max_frames and n_kfs > max_frames:
             return False
         min_obs = 3 if n_kfs > 2 else 2
@@ -739,9 +800,9 @@ class Tracking:
         need_close = n_tracked_close < 100 and n_non_tracked_close > min(70, min_new)
         # the map covers too little of what the frame sees nearby (not in ORB-SLAM2): a keyframe
         # when LocalMapping is idle (c1b), never interrupting its BA as need_close does
-        sparse = (n_tracked_close < self.p["close_tracked_ratio"] * np.count_nonzero(close) and
+        sparse = (n_tracked_close < CLOSE_TRACKED_RATIO * np.count_nonzero(close) and
                   n_non_tracked_close > min(70, min_new))
-        th_ref = 0.4 if n_kfs < 2 else self.p["th_ref_ratio"]
+        th_ref = 0.4 if n_kfs < 2 else TH_REF_RATIO
         c1a = frame.id >= self.last_kf_frame_id + max_frames
         c1b = frame.id >= self.last_kf_frame_id + min_frames and idle
         c1c = self.n_matches_inliers < n_ref * 0.25 or need_close
@@ -763,7 +824,7 @@ class Tracking:
         stereo = stereo[np.argsort(frame.depth[stereo], kind="stable")]
         if len(stereo):
             n_pts = np.arange(1, len(stereo) + 1)
-            stop = (frame.depth[stereo] > frame.th_depth) & (n_pts > self.p["min_close_points"])
+            stop = (frame.depth[stereo] > frame.th_depth) & (n_pts > MIN_CLOSE_POINTS)
             if np.any(stop):
                 stereo = stereo[: int(np.argmax(stop))]
             new = stereo[frame.mp_ids[stereo] < 0]

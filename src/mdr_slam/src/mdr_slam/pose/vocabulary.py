@@ -17,9 +17,13 @@ from __future__ import annotations
 import os
 from typing import Dict, Iterable, List, Optional, Tuple
 
+import cv2
 import numpy as np
 
-from .orb import _POPCOUNT, hamming
+from ..camera import StereoCamera
+from ..io.atomic import atomic_path
+from .orb import _POPCOUNT, ORBextractor, hamming
+from .synthetic import BoxRoom, orbit_trajectory
 
 __all__ = ["ORBVocabulary", "KeyFrameDatabase", "default_vocabulary_path", "load_vocabulary",
            "builtin_training_images", "bow_score"]
@@ -140,7 +144,6 @@ class ORBVocabulary:
         return words, (val / s if s > 0 else val)
 
     def save(self, path: str) -> None:
-        from ..io.atomic import atomic_path
         with atomic_path(path, ".npz") as tmp:
             with open(tmp, "wb") as f:
                 np.savez_compressed(f, k=self.k, L=self.L, idf=self.idf,
@@ -170,8 +173,6 @@ def bow_score(a: Tuple[np.ndarray, np.ndarray], b: Tuple[np.ndarray, np.ndarray]
 def builtin_training_images(n_synthetic: int = 24, seed: int = 7) -> Iterable[np.ndarray]:
     """Grey images available offline: ray-cast rooms with several textures and poses, and the
     sample images shipped inside matplotlib (if installed)."""
-    from ..camera import StereoCamera
-    from .synthetic import BoxRoom, orbit_trajectory
     cam = StereoCamera.from_rectified(640, 480, 420.0, 420.0, 320.0, 240.0, 0.1)
     per_room = 6
     for r in range(max(1, n_synthetic // per_room)):
@@ -179,7 +180,6 @@ def builtin_training_images(n_synthetic: int = 24, seed: int = 7) -> Iterable[np
         for T in orbit_trajectory(per_room, radius=0.8, arc=2 * np.pi, yaw_offset=0.3 * r):
             yield room.render(T, cam.fx, cam.fy, cam.cx, cam.cy, 640, 480)
     try:
-        import cv2
         import matplotlib
         sample = os.path.join(os.path.dirname(matplotlib.__file__), "mpl-data", "sample_data")
         for root, _, files in os.walk(sample):
@@ -193,7 +193,6 @@ def builtin_training_images(n_synthetic: int = 24, seed: int = 7) -> Iterable[np
 
 
 def image_descriptor_sets(images: Iterable[np.ndarray], n_features: int = 1000) -> List[np.ndarray]:
-    from .orb import ORBextractor
     ex = ORBextractor(n_features)
     out = []
     for img in images:

@@ -44,7 +44,7 @@ def test_orb_node_tracks_synthetic_stream(rospy_client, start_process, tmp_path,
     every pose, keyframe pose, tf and the saved trajectory is T_base_cam @ (the tracker's pose in
     its first camera frame); without it map is the first camera's optical frame."""
     rospy = rospy_client
-    from mdr_slam.nodes.common import parse_transform
+    from mdr_slam.geometry import parse_transform
     from mdr_slam import conversions as cv
     from mdr_slam.camera import StereoCamera
     from mdr_slam.geometry import inv_T

@@ -19,17 +19,6 @@ SMALL = ["--set", "depth.tau=0.02"]
 MDR = [sys.executable, "-c", "import sys; from mdr_slam.cli import main; sys.exit(main())"]
 
 
-@pytest.fixture(scope="module")
-def small_sim(tmp_path_factory):
-    """The office loop at half resolution (376x240) and 10 Hz, of which the runs use the first 60
-    frames (6 s: a shorter sequence would make the one-lap loop unrealistically fast)."""
-    from mdr_slam.sim import generate
-    d = str(tmp_path_factory.mktemp("sim_office"))
-    generate(d, scene="office", duration=30.0, seed=1, rate=10.0, scale=0.5, workers=2,
-             map_cell=0.02)
-    return d
-
-
 def _mdr(*args, check=True):
     r = subprocess.run(MDR + list(args), capture_output=True, text=True)
     if check:

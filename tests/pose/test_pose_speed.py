@@ -246,7 +246,7 @@ def _orbit_system(n, params=None):
     room = BoxRoom((3.0, 1.5, 3.0), tex_size=768, seed=3)
     poses = orbit_trajectory(28, radius=1.0, arc=np.pi / 2)
     images = [room.render_stereo(T, cam) for T in poses]
-    s = System(cam, params=params, threads=False)
+    s = System(cam, config=params, threads=False)
     for i in range(n):
         assert s.track(0.05 * i, *images[i]).state == "OK"
     return s, poses, images
@@ -277,11 +277,13 @@ def test_motion_model_uses_the_real_frame_gap():
     s.shutdown()
 
 
-def test_relocalization_is_bounded_per_frame():
+def test_relocalization_is_bounded_per_frame(monkeypatch):
     """LOST on an unknown view: with no time budget one candidate keyframe is tried per frame,
     and the next LOST frame tries another; with a large budget every candidate is tried."""
-    s, poses, images = _orbit_system(12, params={"loop_closing": False, "reloc_max_ms": 0.0,
-                                                  "reset_if_lost_below_kfs": 0})
+    from mdr_slam.pose import system as system_module, tracking
+    monkeypatch.setattr(tracking, "RELOC_MAX_MS", 0.0)
+    monkeypatch.setattr(tracking, "RESET_IF_LOST_BELOW_KFS", 0)
+    s, poses, images = _orbit_system(12, params={"loop_closing": False})
     n_kfs = len(s.map.good_keyframes())
     assert n_kfs >= 3
     rng = np.random.RandomState(7)
@@ -293,10 +295,10 @@ def test_relocalization_is_bounded_per_frame():
         assert r.state == "LOST" and s.tracking.n_reloc_tried == 1
         tried.append(set(s.tracking.reloc_tried))
     assert len(tried[1]) == 2 and tried[0] < tried[1]   # a different keyframe the second time
-    s.tracking.p["reloc_max_ms"] = 1e6
+    monkeypatch.setattr(tracking, "RELOC_MAX_MS", 1e6)
     s.tracking.reloc_tried.clear()
     r = s.track(1.2, *noise[2])
-    assert r.state == "LOST" and s.tracking.n_reloc_tried == min(n_kfs, s.p["reloc_candidates"])
+    assert r.state == "LOST" and s.tracking.n_reloc_tried == min(n_kfs, system_module.RELOC_CANDIDATES)
     r = s.track(1.25, *images[8])                       # a known view: relocalized
     assert r.state == "RELOCALIZED" and not s.tracking.reloc_tried
     s.shutdown()

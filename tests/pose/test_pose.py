@@ -2,13 +2,15 @@
 tracking on a ray-cast textured room with exact ground truth."""
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
 from mdr_slam.camera import StereoCamera
 from mdr_slam.geometry import inv_T, make_T
-from mdr_slam.pose import Frame, Map, ORBextractor, Optimizer, System
+from mdr_slam.pose import Frame, Map, ORBextractor, Optimizer, System, TrackerConfig
 from mdr_slam.pose.evaluate import ate_rmse, umeyama_se3
 from mdr_slam.pose.optimizer import bundle_adjust
 from mdr_slam.pose.orb import expand_ranges, hamming, hamming_matrix
@@ -262,8 +264,18 @@ def test_bundle_adjust_weighs_rows_by_texture():
     assert errs[0] > 0.02 and errs[1] < 0.5 * errs[0], errs   # measured 0.036 / 0.011 m
 
 
+@contextlib.contextmanager
+def tuned(module, **values):
+    """The module's tuned constants (``LOST_COAST_S=0.0``) set for the block, then restored."""
+    with pytest.MonkeyPatch.context() as m:
+        for k, v in values.items():
+            assert hasattr(module, k), "%s has no constant %s" % (module.__name__, k)
+            m.setattr(module, k, v)
+        yield
+
+
 def _run(images, threads=False, params=None):
-    s = System(CAM, params=params, threads=threads)
+    s = System(CAM, config=params, threads=threads)
     results = []
     for i, (l, r) in enumerate(images):
         results.append(s.track(0.05 * i, l, r))
@@ -333,8 +345,10 @@ def test_lost_frame_recovered_by_coasting_on_the_motion_model(sequence):
     tracked frame and the motion model scaled to the gap (OK, no relocalization); beyond
     lost_coast_s only relocalization is tried."""
     poses, images = sequence
-    keep = {"reset_if_lost_below_kfs": 0}   # a young map would otherwise start anew
-    s = System(CAM, params=keep, threads=False)
+    from mdr_slam.pose import tracking
+    keep = tuned(tracking, RESET_IF_LOST_BELOW_KFS=0)   # a young map would otherwise start anew
+    keep.__enter__()
+    s = System(CAM, threads=False)
     for i in range(12):
         assert s.track(0.05 * i, *images[i]).state == "OK"
     z = np.zeros_like(images[0][0])
@@ -345,13 +359,15 @@ def test_lost_frame_recovered_by_coasting_on_the_motion_model(sequence):
     T_true = inv_T(poses[0]) @ poses[13]
     assert np.linalg.norm(r.T_map_cam[:3, 3] - T_true[:3, 3]) < 0.03
     s.shutdown()
-    s = System(CAM, params=dict(keep, lost_coast_s=0.0), threads=False)   # ORB-SLAM2's way
-    for i in range(12):
-        s.track(0.05 * i, *images[i])
-    s.track(0.05 * 12, z, z)
-    assert s.tracking.velocity is None
-    assert s.track(0.05 * 13, *images[13]).state in ("RELOCALIZED", "LOST")
-    s.shutdown()
+    with tuned(tracking, LOST_COAST_S=0.0):   # ORB-SLAM2's way
+        s = System(CAM, threads=False)
+        for i in range(12):
+            s.track(0.05 * i, *images[i])
+        s.track(0.05 * 12, z, z)
+        assert s.tracking.velocity is None
+        assert s.track(0.05 * 13, *images[13]).state in ("RELOCALIZED", "LOST")
+        s.shutdown()
+    keep.__exit__(None, None, None)
 
 
 def test_frames_made_ahead_track_exactly_like_frames_made_in_track(sequence):
@@ -373,12 +389,14 @@ def test_frames_made_ahead_track_exactly_like_frames_made_in_track(sequence):
         assert a.time_ms >= a.frame_ms > 0   # the frame's making counts in its processing time
 
 
-def test_mapping_threads_yield_while_a_frame_is_tracked():
+def test_mapping_threads_yield_while_a_frame_is_tracked(monkeypatch):
     """yield_to_tracking blocks while System.track runs (threads) and returns once it ends,
     or after yield_max_ms; synchronous mode never waits."""
     import threading
     import time
-    s = System(CAM, params={"yield_max_ms": 2000.0}, threads=True)
+    from mdr_slam.pose import system as system_module
+    monkeypatch.setattr(system_module, "YIELD_MAX_MS", 2000.0)
+    s = System(CAM, threads=True)
     try:
         s.tracking_idle.clear()              # as System.track does on entry
         done = threading.Event()
@@ -389,7 +407,7 @@ def test_mapping_threads_yield_while_a_frame_is_tracked():
         s.tracking_idle.set()                # System.track returns
         assert done.wait(1.0)
         th.join()
-        s.p["yield_max_ms"] = 50.0
+        monkeypatch.setattr(system_module, "YIELD_MAX_MS", 50.0)
         s.tracking_idle.clear()
         t0 = time.monotonic()
         s.yield_to_tracking()                # never longer than yield_max_ms
@@ -417,7 +435,7 @@ def test_blank_images_do_not_initialise():
     assert r.state == "NOT_INITIALIZED" and r.T_map_cam is None and r.n_tracked == 0
     assert len(s.trajectory()) == 0
     with pytest.raises(ValueError):
-        System(CAM, params={"no_such_parameter": 1}, threads=False)
+        System(CAM, config={"no_such_parameter": 1}, threads=False)
 
 
 def test_umeyama_recovers_rigid_transform():
@@ -534,7 +552,7 @@ def test_low_texture_turn_tracked_end_to_end(office_low_texture):
     cam, stamps, poses, images = office_low_texture
     p = load_params("pose")
     p.update(n_features=1000)
-    s = System(cam, params=p, threads=False)
+    s = System(cam, config=TrackerConfig.pick(p), threads=False)
     states, fallback = [], 0
     for t, (l, r) in zip(stamps, images):
         states.append(s.track(t, l, r).state)
@@ -716,162 +734,12 @@ def _two_keyframes(room, sequence, a=0, b=5):
     return mp, kfs
 
 
-def _triangulate_pairs(room, sequence, depth):
-    from types import SimpleNamespace
-    from mdr_slam.pose.local_mapping import LocalMapping
-    from mdr_slam.pose.system import DEFAULT_PARAMS
-    from mdr_slam.pose.vocabulary import load_vocabulary
-    mp, (k1, k2) = _two_keyframes(room, sequence)
-    system = SimpleNamespace(map=mp, threads=False,
-                             loop_closing=SimpleNamespace(voc=load_vocabulary()))
-    lm = LocalMapping(system, dict(DEFAULT_PARAMS, triangulation_bow_depth=depth))
-    n = lm.create_new_map_points(k1)
-    m = np.nonzero(k1.mp_ids >= 0)[0]
-    kp2 = {int(p): j for j, p in enumerate(k2.mp_ids) if p >= 0}
-    pairs = {(int(i), kp2[int(k1.mp_ids[i])]) for i in m if int(k1.mp_ids[i]) in kp2}
-    return n, pairs, mp, k1
-
-
-def test_same_node_pairs_equals_dense_comparison():
-    from mdr_slam.pose.local_mapping import same_node_pairs
-    rng = np.random.RandomState(11)
-    for n1, n2 in ((0, 5), (7, 0), (300, 250), (1, 1)):
-        a, b = rng.randint(0, 40, n1), rng.randint(0, 40, n2)
-        pi, pj = same_node_pairs(a, b)
-        ref = set(zip(*[x.tolist() for x in np.nonzero(a[:, None] == b[None, :])]))
-        assert set(zip(pi.tolist(), pj.tolist())) == ref and len(pi) == len(ref)
-
-
-def test_triangulation_bow_prefilter_keeps_the_brute_force_matches(room, sequence):
-    """The vocabulary-node prefilter (ORB-SLAM2 SearchForTriangulation) compares a small share of
-    the keypoint pairs, yet finds most of the matches the dense epipolar search finds, and its
-    points are as accurate (depth against the ray-cast truth)."""
-    from mdr_slam.pose.local_mapping import feature_nodes
-    from mdr_slam.pose.vocabulary import load_vocabulary
-    n_bf, pairs_bf, _, _ = _triangulate_pairs(room, sequence, 0)
-    n_bow, pairs_bow, mp, k1 = _triangulate_pairs(room, sequence, 1)
-    assert n_bf > 100, n_bf
-    common = len(pairs_bf & pairs_bow)
-    assert common >= 0.7 * len(pairs_bf), (common, len(pairs_bf), len(pairs_bow))
-    assert len(pairs_bow - pairs_bf) <= 0.1 * len(pairs_bow)   # hardly any match of its own
-    # share of pairs compared: same-node pairs against all pairs
-    voc = load_vocabulary()
-    nodes = feature_nodes(voc, k1.desc, 1)
-    share = np.sum(np.bincount(nodes) ** 2) / float(len(nodes) ** 2)
-    assert share < 0.2, share
-    # accuracy of the prefiltered points: depth in k1 against the true depth of the ray
-    ids = k1.mp_ids[k1.mp_ids >= 0]
-    uv = k1.uv[k1.mp_ids >= 0]
-    z = (mp.mp_pos[ids] @ k1.T_cw[:3, :3].T + k1.T_cw[:3, 3])[:, 2]
-    z_true = _true_depth(room, k1.T_wc, uv.astype(float))
-    rel = np.abs(z - z_true) / z_true
-    assert np.median(rel) < 0.02 and np.mean(rel < 0.1) > 0.9, (np.median(rel), np.mean(rel < 0.1))
-
-
-def _noisy_ba_problem(seed=6, noise=0.7, outliers=0.03):
-    rng = np.random.RandomState(seed)
-    P = _synthetic_points(rng, 300)
-    Ts = np.array([inv_T(make_T(Rotation.from_rotvec([0, 0.03 * c, 0]).as_matrix(),
-                                [0.3 * c, 0, 0.2 * c])) for c in range(6)])
-    ci = np.repeat(np.arange(len(Ts)), len(P))
-    pi = np.tile(np.arange(len(P)), len(Ts))
-    Pc = (Ts[ci, :3, :3] @ P[pi][:, :, None])[:, :, 0] + Ts[ci, :3, 3]
-    bf = CAM.fx * CAM.baseline
-    u = CAM.fx * Pc[:, 0] / Pc[:, 2] + CAM.cx
-    v = CAM.fy * Pc[:, 1] / Pc[:, 2] + CAM.cy
-    stereo = rng.rand(len(u)) < 0.5
-    obs = np.column_stack([u, v, np.where(stereo, u - bf / Pc[:, 2], 0.0)])
-    obs += rng.randn(*obs.shape) * noise
-    bad = rng.rand(len(u)) < outliers
-    obs[bad, :2] += rng.uniform(-30, 30, (int(bad.sum()), 2))
-    obs[:, 2] = np.where(stereo, obs[:, 2], 0.0)
-    Tn = Ts.copy()
-    for c in range(1, len(Ts)):
-        Tn[c] = make_T(Rotation.from_rotvec(rng.randn(3) * 0.01).as_matrix(),
-                       rng.randn(3) * 0.05) @ Ts[c]
-    Pn = P + rng.randn(*P.shape) * 0.05
-    fixed = np.zeros(len(Ts), bool)
-    fixed[0] = True
-    return (Tn, fixed, Pn, ci, pi, obs, stereo, np.ones(len(u)),
-            (CAM.fx, CAM.fy, CAM.cx, CAM.cy, bf), 10), Ts, P
-
-
-def test_bundle_adjust_tol_stops_converged_rounds_early_at_the_same_solution():
-    """ba_tol: a round ends once a step lowers the robust cost by less than tol (x cost); the
-    result matches the full iteration count (noise 0.7 px, 3 % outliers) with fewer iterations.
-    Iterations are counted through the abort callback (asked once per iteration after the
-    first)."""
-    args, Ts, P = _noisy_ba_problem()
-    runs = {}
-    for tol in (0.0, 1e-3):
-        calls = []
-        Tr, Pr = bundle_adjust(*args, abort=lambda: calls.append(1) and False, tol=tol)
-        runs[tol] = (Tr, Pr, len(calls) + 1)
-    (T0, P0, n0), (T1, P1, n1) = runs[0.0], runs[1e-3]
-    assert n0 == 10 and n1 < n0, (n0, n1)
-    for c in range(len(Ts)):
-        d = np.linalg.norm(inv_T(T1[c])[:3, 3] - inv_T(T0[c])[:3, 3])
-        err = np.linalg.norm(inv_T(T1[c])[:3, 3] - inv_T(Ts[c])[:3, 3])
-        err0 = np.linalg.norm(inv_T(T0[c])[:3, 3] - inv_T(Ts[c])[:3, 3])
-        assert d < 2e-3 and err < err0 + 1e-3, (c, d, err, err0)
-    assert np.median(np.linalg.norm(P1 - P0, axis=1)) < 2e-3
-
-
-def test_set_bad_points_clears_every_observation_and_nothing_else():
-    from types import SimpleNamespace
-    rng = np.random.RandomState(8)
-    mp = Map(capacity=16)
-    kfs = []
-    for i in range(4):
-        f = SimpleNamespace(id=i, stamp=0.0, uv=np.zeros((50, 2)), octave=np.zeros(50, int),
-                            angle=np.zeros(50), desc=np.zeros((50, 32), np.uint8),
-                            ur=-np.ones(50), depth=-np.ones(50), N=50, fx=1, fy=1, cx=0, cy=0,
-                            bf=1, baseline=1, th_depth=1, scale=np.ones(8),
-                            inv_level_sigma2=np.ones(8), log_scale=0.2, nlevels=8, width=10,
-                            height=10, mp_ids=-np.ones(50, np.int64), T_cw=np.eye(4))
-        kfs.append(mp.new_keyframe(f))
-    ids = mp.add_points(rng.randn(40, 3), np.zeros((40, 32), np.uint8), kfs[0], np.arange(40))
-    for k in kfs[1:]:
-        kp = rng.choice(50, 30, replace=False)
-        mp.add_observations(k, kp, rng.choice(ids, 30, replace=False))
-    before = [k.mp_ids.copy() for k in kfs]
-    dead = np.array([0, 5, 17, ids[-1]])          # includes the last point (index n - 1)
-    mp.set_bad_points(dead)
-    for k, b in zip(kfs, before):
-        expect = np.where(np.isin(b, dead), -1, b)
-        np.testing.assert_array_equal(k.mp_ids, expect)
-    assert mp.mp_bad[dead].all() and not mp.mp_bad[np.setdiff1d(ids, dead)].any()
-
-
-def test_pose_graph_weights_put_the_loop_error_on_weak_links():
-    """Loop pose graph with edge information: when the drift comes from one weak link
-    (a stretch tracked on a few blank-wall corners), weighting edges by their shared points
-    moves the correction there instead of bending the well-tracked rest of the loop."""
-    steps, true = _square_loop()
-    bad = make_T(Rotation.from_euler("y", 4.0, degrees=True).as_matrix(), [0.1, 0.0, 0.05])
-    est = [np.eye(4)]
-    for i, s_ in enumerate(steps):
-        est.append(est[-1] @ s_ @ (bad if i == 6 else np.eye(4)))
-    poses = {i: T for i, T in enumerate(est)}
-    rel = [(i, i + 1, inv_T(est[i]) @ est[i + 1]) for i in range(16)]
-    loop = (0, 16, inv_T(true[0]) @ true[16])
-
-    def mid_err(out):
-        return max(np.linalg.norm(out[i][:3, 3] - true[i][:3, 3]) for i in range(1, 7))
-    plain = Optimizer.optimize_essential_graph(poses, rel + [loop], fixed=0)
-    weighted = Optimizer.optimize_essential_graph(
-        poses, [e + ((0.1 if e[0] == 6 else 10.0),) for e in rel] + [loop + (2.0,)], fixed=0)
-    assert np.linalg.norm(weighted[16][:3, 3] - true[16][:3, 3]) < 0.05
-    assert mid_err(weighted) < 0.5 * mid_err(plain), (mid_err(weighted), mid_err(plain))
-    assert mid_err(weighted) < 0.05
-
-
 def test_triangulation_yields_to_a_waiting_keyframe_only_when_live(room, sequence):
     """ORB-SLAM2 CheckNewKeyFrames: with threads (live) and a newer keyframe queued, the search
     stops after the first neighbour; offline (threads=False) every neighbour is searched."""
     from types import SimpleNamespace
+    from mdr_slam.pose import TrackerConfig
     from mdr_slam.pose.local_mapping import LocalMapping
-    from mdr_slam.pose.system import DEFAULT_PARAMS
     poses, images = sequence
     counts = {}
     for live in (False, True):
@@ -884,7 +752,7 @@ def test_triangulation_yields_to_a_waiting_keyframe_only_when_live(room, sequenc
             kfs.append(mp.new_keyframe(f))
         kfs[0].connections = {kfs[1].id: 100, kfs[2].id: 90}
         lm = LocalMapping(SimpleNamespace(map=mp, threads=live, loop_closing=None),
-                          dict(DEFAULT_PARAMS))
+                          TrackerConfig())
         lm.queue.append(object())          # a newer keyframe is waiting
         counts[live] = (lm.create_new_map_points(kfs[0]),
                         int(np.count_nonzero(kfs[2].mp_ids >= 0)))
@@ -899,8 +767,7 @@ def test_loop_drift_gate_rejects_implausible_corrections():
     from mdr_slam.pose.loop_closing import LoopClosing
     mp, _ = _loop_map()
     lc = LoopClosing.__new__(LoopClosing)   # the gate only needs the map and the parameters
-    from mdr_slam.pose.params import DEFAULT_PARAMS
-    lc.map, lc.p, lc.rejected = mp, dict(DEFAULT_PARAMS), []
+    lc.map, lc.rejected = mp, []
     kf, cand = mp.keyframes[23], mp.keyframes[0]
     small = make_T(Rotation.from_euler("y", 12.0, degrees=True).as_matrix(), [0.3, 0.0, -0.2])
     assert lc.plausible_correction(kf, cand, small)          # ~9 m of keyframe path
@@ -934,13 +801,15 @@ def orbit_loop(room):
     return poses, [room.render_stereo(T, CAM) for T in poses]
 
 
-def _loop_run(images, **params):
-    # loop_consistency 99: the BoW path never accepts a candidate (stands in for a place whose
-    # descriptors do not recur, #6 office loop seed 1)
-    s = System(CAM, params=dict({"loop_consistency": 99}, **params), threads=False)
-    for i, (l, r) in enumerate(images):
-        s.track(0.1 * i, l, r)
-    s.shutdown()
+def _loop_run(images, **constants):
+    # LOOP_CONSISTENCY 99: the BoW path never accepts a candidate (stands in for a place whose
+    # descriptors do not recur, as on the office loop's blank walls)
+    from mdr_slam.pose import loop_closing
+    with tuned(loop_closing, LOOP_CONSISTENCY=99, **constants):
+        s = System(CAM, threads=False)
+        for i, (l, r) in enumerate(images):
+            s.track(0.1 * i, l, r)
+        s.shutdown()
     return s
 
 
@@ -966,7 +835,7 @@ def test_proximity_loop_closes_a_loop_the_bow_misses(orbit_loop, orbit_proximity
     D = inv_T(poses[ib]) @ poses[ia]
     assert np.linalg.norm(D[:3, 3]) < 0.4
     assert Rotation.from_matrix(D[:3, :3]).magnitude() < np.radians(20)
-    off = _loop_run(images, loop_proximity=False)
+    off = _loop_run(images, LOOP_PROXIMITY=False)
     assert off.loop_closing.loops == [] and off.loop_closing.proximity_tries == 0
 
 
@@ -1037,12 +906,10 @@ def test_proximity_needs_both_sides_to_agree(orbit_proximity_run, monkeypatch):
     assert agree is not None and np.allclose(agree[0], good[0]) and len(lc.one_way) == n0 + 1
     monkeypatch.setattr(LoopClosing, "_lk_pnp", other_side(0.0, none=True))
     assert lc.verify_proximity(kf, cand, shift) is not None
-    lc.p["loop_proximity_two_way"] = False
-    try:
-        monkeypatch.setattr(LoopClosing, "_lk_pnp", other_side(5.0))
-        assert lc.verify_proximity(kf, cand, shift) is not None
-    finally:
-        lc.p["loop_proximity_two_way"] = True
+    from mdr_slam.pose import loop_closing
+    monkeypatch.setattr(loop_closing, "LOOP_PROXIMITY_TWO_WAY", False)
+    monkeypatch.setattr(LoopClosing, "_lk_pnp", other_side(5.0))
+    assert lc.verify_proximity(kf, cand, shift) is not None
 
 
 def test_weak_proximity_verifications_need_consistent_corrections():
@@ -1051,8 +918,9 @@ def test_weak_proximity_verifications_need_consistent_corrections():
     from types import SimpleNamespace
     from mdr_slam.pose.loop_closing import LoopClosing
     lc = LoopClosing.__new__(LoopClosing)
-    from mdr_slam.pose.params import DEFAULT_PARAMS
-    lc.p, lc._weak = dict(DEFAULT_PARAMS, loop_proximity_weak_consistency=2), []
+    from mdr_slam.pose import loop_closing
+    assert loop_closing.LOOP_PROXIMITY_WEAK_CONSISTENCY == 2
+    lc._weak = []
     S = make_T(Rotation.from_euler("y", 20.0, degrees=True).as_matrix(), [0.8, 0.0, -0.3])
     kfs = [SimpleNamespace(id=i, T_wc=make_T(np.eye(3), [0.1 * i, 0.0, 0.0])) for i in range(6)]
     assert not lc._weak_consistent(kfs[0], S)
@@ -1068,7 +936,8 @@ def test_weak_proximity_verifications_need_consistent_corrections():
     assert not lc._weak_consistent(SimpleNamespace(id=30, T_wc=np.eye(4)), S)
 
 
-def test_trajectory_spreads_the_next_keyframes_correction_over_the_frames_before_it(sequence):
+def test_trajectory_spreads_the_next_keyframes_correction_over_the_frames_before_it(sequence,
+                                                                                    monkeypatch):
     """System.trajectory puts a frame between keyframes a and b on both: when BA (or a loop)
     moves b, the frames tracked since a follow it in proportion to their time since a, not only
     a (ORB-SLAM2 keeps them on their reference keyframe, and frame-to-frame drift between two
@@ -1083,9 +952,10 @@ def test_trajectory_spreads_the_next_keyframes_correction_over_the_frames_before
     ia, ib, kb = idx[n - 1], idx[n], tr.kf_records[n][1]
     stamps = np.array([r[0] for r in tr.records])
     before = s.trajectory()
-    s.p["trajectory_blend"] = False
+    from mdr_slam.pose import system as system_module
+    monkeypatch.setattr(system_module, "TRAJECTORY_BLEND", False)
     plain = s.trajectory()
-    s.p["trajectory_blend"] = True
+    monkeypatch.setattr(system_module, "TRAJECTORY_BLEND", True)
     delta = np.array([0.05, -0.02, 0.03])
     T_wc = inv_T(kb.T_cw)
     T_wc[:3, 3] += delta
@@ -1097,23 +967,26 @@ def test_trajectory_spreads_the_next_keyframes_correction_over_the_frames_before
         w = (stamps[i] - stamps[ia]) / (stamps[ib] - stamps[ia])
         np.testing.assert_allclose(moved[i], w * delta, atol=1e-9)
     assert np.abs(moved[:ia]).max(initial=0.0) < 1e-9
-    s.p["trajectory_blend"] = False          # ORB-SLAM2: only b itself moves
+    monkeypatch.setattr(system_module, "TRAJECTORY_BLEND", False)   # ORB-SLAM2: only b moves
     moved = s.trajectory().positions - plain.positions
     assert np.abs(moved[ia:ib]).max() < 1e-9 and np.allclose(moved[ib], delta)
     s.shutdown()
 
 
-def test_config_pose_yaml_and_node_defaults_are_all_known():
-    """Every key of config/pose.yaml and of pose_node.DEFAULTS is either a tracker parameter or
-    a node-only key (System would refuse the file otherwise, and mdr run / the node with it)."""
+def test_config_pose_yaml_is_split_between_the_node_and_the_tracker():
+    """Every key of config/pose.yaml is a parameter of exactly one of PoseNodeConfig and
+    TrackerConfig, and the tracker's part builds a System."""
     import os
     import yaml
-    from mdr_slam.nodes.pose_node import DEFAULTS
-    from mdr_slam.pose.system import DEFAULT_PARAMS, NODE_KEYS
-    cfg = os.path.join(os.path.dirname(__file__), "..", "src", "mdr_slam", "config", "pose.yaml")
-    keys = set(yaml.safe_load(open(cfg))) | set(DEFAULTS)
-    assert not keys - set(DEFAULT_PARAMS) - NODE_KEYS, keys - set(DEFAULT_PARAMS) - NODE_KEYS
-    System(CAM, params=yaml.safe_load(open(cfg)), threads=False).shutdown()
+    from mdr_slam.config import split_known
+    from mdr_slam.nodes.config import PoseNodeConfig
+    from mdr_slam.pose import TrackerConfig
+    assert not set(PoseNodeConfig.keys()) & set(TrackerConfig.keys())
+    from conftest import ROOT
+    cfg = os.path.join(ROOT, "src", "mdr_slam", "config", "pose.yaml")
+    node, tracker = split_known(yaml.safe_load(open(cfg)), PoseNodeConfig, TrackerConfig)
+    assert node and tracker
+    System(CAM, config=tracker, threads=False).shutdown()
 
 
 def test_corrections_carry_culled_keyframes_along_their_ancestor(sequence):
@@ -1170,12 +1043,13 @@ def test_optical_flow_carries_tracking_over_a_blank_wall(office_blank_wall, monk
 
     monkeypatch.setattr(Tracking, "track_last_frame_flow", spy)
     runs, ate = {}, {}
+    from mdr_slam.pose import system as system_module, tracking
+    default_tau = system_module.TEXTURE_TAU
     for flow, tau in ((True, 0.0), (False, 0.0), (False, None)):
-        p = load_params("pose")
-        p.update(n_features=1000, flow_tracking=flow)
-        if tau is not None:
-            p["texture_tau"] = tau
-        s = System(cam, params=p, threads=False)
+        monkeypatch.setattr(tracking, "FLOW_TRACKING", flow)
+        monkeypatch.setattr(system_module, "TEXTURE_TAU", default_tau if tau is None else tau)
+        p = TrackerConfig.pick(load_params("pose")).replace(n_features=1000)
+        s = System(cam, config=p, threads=False)
         n_used = len(used)
         runs[flow, tau] = [s.track(t, l, r).state for t, (l, r) in zip(stamps, images)]
         if flow:
@@ -1222,9 +1096,9 @@ def test_flow_pnp_fits_the_tracks_that_pin_both_axes(monkeypatch):
     monkeypatch.setattr(Tracking, "track_last_frame_flow", spy)
     err = {}
     for th in (10.0, 0.0):
-        p = load_params("pose")
-        p["flow_pnp_min_texture"] = th
-        s = System(cam, params=p, threads=False)
+        from mdr_slam.pose import tracking
+        monkeypatch.setattr(tracking, "FLOW_PNP_MIN_TEXTURE", th)
+        s = System(cam, config=TrackerConfig.pick(load_params("pose")), threads=False)
         del flow_frames[:]
         states = [s.track(t, im["left"], im["right"]).state for t, im in zip(stamps, images)]
         T = s.trajectory().matrices()
@@ -1285,8 +1159,8 @@ def test_motion_prior_holds_the_pose_on_a_single_small_patch():
     """Features on one small far patch: a lateral shift and a yaw move them alike, so the pose-only
     optimization drifts along that direction; the constant-velocity prior (frame.prior) keeps it
     near the prediction. Tested with the shipped defaults (on by default) at 20 Hz."""
-    from mdr_slam.pose.system import DEFAULT_PARAMS
-    acc, ang = float(DEFAULT_PARAMS["motion_prior_acc"]), float(DEFAULT_PARAMS["motion_prior_ang_acc"])
+    from mdr_slam.pose import tracking
+    acc, ang = float(tracking.MOTION_PRIOR_ACC), float(tracking.MOTION_PRIOR_ANG_ACC)
     assert acc > 0 and ang > 0, (acc, ang)
     sig_t, sig_r = acc * 0.05 ** 2, np.radians(ang) * 0.05 ** 2
     errs = {False: [], True: []}
@@ -1379,7 +1253,7 @@ def _patch_wall(T_cw, tex, res, z_wall, cam, rng, noise=2.0):
     return out
 
 
-def test_faint_shading_settles_the_pose_when_features_lie_on_one_patch():
+def test_faint_shading_settles_the_pose_when_features_lie_on_one_patch(monkeypatch):
     """The simulated garage's failure, reproduced: a blank wall 5.5 m away whose only ORB
     texture is one 1.2 m poster, so every feature lies on a ~100 px patch and a yaw and a
     sideways step move them alike. Walking sideways while turning (3 cm and 0.3 deg per frame,
@@ -1400,9 +1274,10 @@ def test_faint_shading_settles_the_pose_when_features_lie_on_one_patch():
                           [-0.03 * i, 0.0, 0.0])) for i in range(n)]
     pairs = [_patch_wall(T, tex, res, 5.5, wcam, rng) for T in poses]
     err = {}
+    from mdr_slam.pose import tracking
     for spread in (0.0, 0.3):
-        s = System(wcam, params={"shading_max_spread": spread, "loop_closing": False},
-                   threads=False)
+        monkeypatch.setattr(tracking, "SHADING_MAX_SPREAD", spread)
+        s = System(wcam, config={"loop_closing": False}, threads=False)
         states = [s.track(0.05 * i, l, r).state for i, (l, r) in enumerate(pairs)]
         assert states.count("OK") == n, states
         T_est = s.trajectory().matrices()[-1]
@@ -1478,7 +1353,7 @@ def test_kitti_clip_tracked_with_calib_txt():
     from mdr_slam.io.datasets import load_kitti
     from mdr_slam.pipeline import load_params
     ds = load_kitti(shared_data("kitti06_clip"))
-    s = System(ds.camera, load_params("pose", "kitti"), threads=False)
+    s = System(ds.camera, TrackerConfig.pick(load_params("pose", "kitti")), threads=False)
     states = [s.track(stamp, left, right).state for stamp, left, right in ds]
     s.shutdown()
     assert states.count("OK") == len(ds)

@@ -136,7 +136,8 @@ def test_lost_skips_integration_and_resumes_after_relocalization(lost_bag, rosco
 
     d = str(tmp_path)
     fusion = yaml.safe_load(open(os.path.join(ROOT, "src", "mdr_slam", "config", "fusion.yaml")))
-    fusion.update(map_path=os.path.join(d, "auto.ply"), autosave_period=0.0, resume=False,
+    fusion.update(map_path=os.path.join(d, "auto.ply"), map_dir=d, autosave_period=0.0,
+                  resume=False,
                   clean_every=0, publish_rate=2.0, diagnostics_period=0.5,
                   # waits for tf as the depth node does: a cloud stamped while LOST then reaches
                   # the LOST gate instead of failing its pose lookup first (tf of the relocalized

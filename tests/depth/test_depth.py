@@ -5,8 +5,9 @@ import numpy as np
 import pytest
 
 from mdr_slam.camera import StereoCamera
-from mdr_slam.depth import (DepthFilter, ElasMatcher, StereoDepth, measurement_from_disparity,
-                            render_depth)
+from mdr_slam.config import ConfigError
+from mdr_slam.depth import (DepthConfig, DepthFilter, ElasConfig, ElasMatcher, StereoDepth,
+                            measurement_from_disparity, render_depth)
 from mdr_slam.geometry import inv_T, make_T, transform_points
 
 PLANE_Z = 2.0   # a wall facing the camera at z = 2 m in map
@@ -86,6 +87,28 @@ def test_elas_recovers_known_disparity_of_textured_pair():
     # subsampling still returns a full-size disparity
     ds = ElasMatcher({"subsampling": True, "disp_max": 64}).compute(left, right)
     assert ds.shape == (h, w) and abs(float(np.median(ds[ds > 0])) - d) < 0.5
+
+
+@pytest.mark.parametrize("preset", ["robotics", "middlebury"])
+def test_elas_preset_tables_are_libelas_presets(preset):
+    """ELAS_PRESETS holds libelas' own presets: every parameter as Elas::setPreset sets it, the
+    disparity range and subsampling from ElasConfig."""
+    import elas
+    from mdr_slam.depth import ELAS_PRESETS
+    ref = elas.Elas()
+    ref.set_preset(elas.PRESET_ROBOTICS if preset == "robotics" else elas.PRESET_MIDDLEBURY)
+    m = ElasMatcher(ElasConfig(preset=preset.upper(), disp_min=2, disp_max=96, subsampling=False))
+    assert m.params["preset"] == preset
+    assert set(ELAS_PRESETS[preset]) | {"disp_min", "disp_max", "subsampling", "preset"} == \
+        set(m.params)
+    for k, v in m.params.items():
+        want = {"disp_min": 2, "disp_max": 96, "subsampling": False, "preset": preset}.get(
+            k, getattr(ref, k, None))
+        assert v == pytest.approx(want), k
+    with pytest.raises(ConfigError):
+        ElasConfig(preset="kitti")
+    with pytest.raises(ConfigError):
+        ElasConfig(disp_min=64, disp_max=64)
 
 
 # ------------------------------------------------------------------ filter
@@ -279,19 +302,21 @@ def test_elas_only_baseline_returns_every_valid_pixel():
     np.testing.assert_allclose(render_depth(out.points, cam)[v, u], Z[v, u], rtol=1e-5)
 
 
-def test_stride_and_bilinear_options():
+def test_stride_option_and_refused_parameters():
     cam = tiny_camera()
     rng = np.random.default_rng(7)
-    f = DepthFilter(cam, {"stride": 2, "interpolation": "bilinear", "tau": 0.02,
-                          "kf_translation": 10.0, "kf_max_frames": 100})
+    f = DepthFilter(cam, {"stride": 2, "tau": 0.02, "kf_translation": 10.0, "kf_max_frames": 100})
     for i in range(8):
         T = pose(x=0.01 * i)
         out = f.process(0.1 * i, T, *noisy_measurement(cam, T, rng, sigma_d=0.1))
     assert f.keyframe.mu.size == 24 * 32
     assert len(out) > 0.8 * 24 * 32
     np.testing.assert_allclose(map_z(out, T), PLANE_Z, atol=0.05)
-    with pytest.raises(ValueError):
-        DepthFilter(cam, {"stride": 1, "interpolation": "cubic"})
+    # a value out of range, an unknown mode, a removed or misspelt parameter: a clear error
+    for bad in ({"stride": 0}, {"densify": "planes"}, {"densify": False}, {"interpolation": "nearest"},
+                {"tua": 0.02}, {"tau": "x"}):
+        with pytest.raises(ConfigError):
+            DepthFilter(cam, bad)
     with pytest.raises(ValueError):
         f.process(1.0, np.full((4, 4), np.nan), *noisy_measurement(cam, T, rng))
     with pytest.raises(ValueError):
@@ -338,9 +363,9 @@ def test_stereo_depth_end_to_end_on_a_synthetic_wall():
         np.testing.assert_array_equal(oa.points, ob.points)
         np.testing.assert_array_equal(oa.variance, ob.variance)
     assert ob.timings["total"] >= ob.timings["elas"] + ob.timings["filter"] - 1e-9
-    # ELAS-only through the same entry point, ELAS params flat on the command line style
-    sd0 = StereoDepth(cam, {"temporal": False, "elas_disp_max": 48, "stride": 1})
-    assert sd0.matcher.params["disp_max"] == 48
+    # ELAS-only through the same entry point; a DepthConfig as well as a mapping
+    sd0 = StereoDepth(cam, DepthConfig(temporal=False, stride=1, elas=ElasConfig(disp_max=48)))
+    assert sd0.matcher.params["disp_max"] == 48 and sd0.matcher.params["subsampling"]
     out0 = sd0.process(0.0, left, right, np.eye(4))
     assert len(out0) == int(np.count_nonzero(np.isfinite(out0.depth)))
 
@@ -435,8 +460,8 @@ def test_error_correlation_tells_noise_from_a_surface_bias():
     texture) correlates ~1 across frames and no temporal average removes it."""
     import os
     import sys
-    sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
-                                    "scripts"))
+    from conftest import ROOT
+    sys.path.insert(0, os.path.join(ROOT, "scripts"))
     from eval_depth_sim import error_correlation
     cam = tiny_camera()
     w, h = cam.size

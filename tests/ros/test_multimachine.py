@@ -197,7 +197,7 @@ def test_depth_node_on_another_machine_feeds_the_map(two_machines, tmp_path):
              map_cell=0.05)
     bag = os.path.join(sim, "sequence.bag")
     master = "http://%s:11311" % m["host_ip"]
-    # half resolution: one disparity step is twice the depth, so loosen tau (as tests/test_pipeline)
+    # half resolution: one disparity step is twice the depth, so loosen tau (as tests/cli/test_pipeline.py)
     import yaml
     from mdr_slam.pipeline import config_dir
     dparams = yaml.safe_load(open(os.path.join(config_dir(), "depth.yaml")))

@@ -123,8 +123,8 @@ def test_costmap_parameters_match_the_fusion_grid():
     assert fusion["grid_up_axis"] == "z"         # the costmaps measure heights along map z
     # the obstacle layer marks /mdr/map/points: no point less confident than the grid's
     # (test_obstacle_layer_points_are_occupied_grid_cells measures it on the sample map)
-    from mdr_slam.nodes.fusion_node import DEFAULTS
-    for conf in (fusion, DEFAULTS):
+    from mdr_slam.nodes import node_defaults
+    for conf in (fusion, node_defaults("fusion")):
         assert conf["display_min_confidence"] >= conf["grid_min_confidence"]
     # the display cells nest in the grid cells, in the plane and at the band's edges
     for v in (fusion["grid_resolution"], fusion["grid_z_min"], fusion["grid_z_max"]):
@@ -151,7 +151,7 @@ MID_FRAME = 300   # 15 s into the sample: the pure-rotation segment, the map ful
 
 @pytest.fixture(scope="module")
 def nav_sim(tmp_path_factory):
-    """The office loop at half resolution and 10 Hz (as tests/test_pipeline.py's small_sim), for
+    """The office loop at half resolution and 10 Hz (as tests/cli/test_pipeline.py's small_sim), for
     the live run: a light bag for the three nodes on a shared 2-core machine."""
     from mdr_slam.sim import generate
     d = str(tmp_path_factory.mktemp("nav_office"))

@@ -107,6 +107,27 @@ def test_mdr_eval_ate_cli_prints_json_and_plots(tmp_path):
     assert r.returncode == 1 and "mdr eval ate" in r.stderr
 
 
+def test_mdr_eval_ate_align_as_scores_a_run_in_an_earlier_runs_map_frame(tmp_path):
+    """A run localized in a saved map is scored in that map's frame: aligned with the transform
+    that aligns the map's own run to the truth, so an offset of its own is not aligned away."""
+    from scipy.spatial.transform import Rotation
+    gt, _ = _synthetic()
+    T = make_T(Rotation.from_euler("z", 30, degrees=True).as_matrix(), [1.0, -2.0, 0.5])
+    moved = [T @ P for P in gt.matrices()]
+    off = make_T(np.eye(3), [0.05, 0.0, 0.0])        # the second run 5 cm off in the map frame
+    write_tum(str(tmp_path / "gt.txt"), gt)
+    write_tum(str(tmp_path / "run1.txt"), Trajectory.from_matrices(gt.stamps, moved))
+    write_tum(str(tmp_path / "run2.txt"), Trajectory.from_matrices(gt.stamps, [off @ P for P in moved]))
+
+    def rmse(*extra):
+        r = subprocess.run(["mdr", "eval", "ate", str(tmp_path / "run2.txt"), str(tmp_path / "gt.txt"),
+                            *extra], capture_output=True, text=True, timeout=60)
+        assert r.returncode == 0, r.stderr
+        return json.loads(r.stdout)["rmse"]
+    assert rmse() < 1e-6                                  # its own alignment hides the offset
+    assert abs(rmse("--align-as", str(tmp_path / "run1.txt")) - 0.05) < 1e-6
+
+
 # ------------------------------------------------------------------------------------- maps
 def _cloud(step=0.01):
     """A 2 m x 1 m wall sampled every ``step`` (a surface, like a fused map), labelled by x."""

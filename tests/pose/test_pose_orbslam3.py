@@ -10,7 +10,7 @@ import pytest
 
 from conftest import shared_data
 
-from mdr_slam.pose import make_system
+from mdr_slam.pose import TrackerConfig, make_system
 from mdr_slam.pose.orbslam3 import available, export_dbow2_text, settings_yaml
 from mdr_slam.pose.vocabulary import ORBVocabulary
 
@@ -68,7 +68,7 @@ def test_orbslam3_settings_are_reals_where_orb_slam3_wants_reals(tmp_path):
     class Cam:   # KITTI 06 numbers; an integer-looking bf or ThDepth is refused by ORB-SLAM3
         fx, fy, cx, cy, baseline, size = 707.0912, 707.0912, 601.8873, 183.1104, 0.5372, (1226, 370)
     path = tmp_path / "s.yaml"
-    path.write_text(settings_yaml(Cam, {"th_depth": 35, "n_features": 2000, "max_frames": 10}))
+    path.write_text(settings_yaml(Cam, TrackerConfig(th_depth=35, n_features=2000, max_frames=10)))
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     for key in ("Camera.fx", "Camera.fy", "Camera.cx", "Camera.cy", "Camera.bf", "ThDepth",
                 "ORBextractor.scaleFactor"):
@@ -92,7 +92,7 @@ def test_orbslam3_backend_tracks_the_kitti_clip_behind_the_system_interface():
     from mdr_slam.pipeline import load_params
     from mdr_slam.pose.evaluate import ate_rmse
     ds = load_kitti(shared_data("kitti06_clip"))
-    p = dict(load_params("pose", "kitti"), backend="orbslam3")
+    p = TrackerConfig.pick(load_params("pose", "kitti")).replace(backend="orbslam3")
     system = make_system(ds.camera, p, threads=False)
     try:
         states, new, corrections, fed = [], {}, [], []

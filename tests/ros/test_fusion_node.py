@@ -23,7 +23,8 @@ def _wall(n=8000, depth=2.0, seed=0):
 
 def _node(start_process, tmp_path, name, extra=()):
     cmd = ["rosrun", "mdr_slam", "fusion_node", "__name:=" + name,
-           "_map_path:=%s" % (tmp_path / "auto.ply"), "_publish_rate:=4.0", "_display_voxel:=0.0",
+           "_map_path:=%s" % (tmp_path / "auto.ply"), "_map_dir:=%s" % tmp_path,
+           "_publish_rate:=4.0", "_display_voxel:=0.0",
            "_display_min_confidence:=0", "_grid_min_confidence:=1", "_grid_z_min:=-1.0",
            "_grid_z_max:=1.0", "_voxel_size:=0.05", "_autosave_period:=0.0", "_tf_timeout:=0.3",
            "/mdr/depth/points:=/%s/cloud" % name, "/mdr/map/points:=/%s/map" % name,

@@ -75,6 +75,7 @@ def test_old_lap_messages_after_the_clock_jumped_back_are_dropped(rospy_client, 
         fusion = start_process(
             ["rosrun", "mdr_slam", "fusion_node", "__name:=" + name,
              "_map_path:=%s" % (tmp_path / "auto.ply"), "_autosave_period:=0.0",
+             "_map_dir:=%s" % tmp_path,
              "_voxel_size:=0.05", "_clean_every:=0", "_tf_timeout:=0.3", "_publish_rate:=0.0",
              "_tracking_state_topic:=", "/mdr/depth/points:=/tj/cloud", "/mdr/keyframes:=/tj/kf",
              "/mdr/map/points:=/tj/map", "/mdr/map/grid:=/tj/grid"], name)

@@ -18,11 +18,11 @@ true poses) serves the module's launch tests, in file order:
 
 Tracking LOST is tested on the fusion node alone with synthetic tf, tracking states and clouds:
 clouds stamped inside a LOST window are never integrated (not even when tf could interpolate a pose
-across the gap) and integration resumes after relocalization; tests/test_lost_e2e.py does it end to
+across the gap) and integration resumes after relocalization; tests/ros/test_lost_e2e.py does it end to
 end with the ORB tracker on a kidnapped replay of the sample bag.
 
 Run time on a loaded 2-core machine (the file at nice 19, the ~30 s sample render included): 78-95 s
-(3 runs); with tests/test_lost_e2e.py in the same session (one render) 126-133 s for both (3 runs).
+(3 runs); with tests/ros/test_lost_e2e.py in the same session (one render) 126-133 s for both (3 runs).
 """
 from __future__ import annotations
 
@@ -101,7 +101,8 @@ def live(sample_bag, roscore, rospy_client, tmp_path_factory):
     import yaml
     d = str(tmp_path_factory.mktemp("faults_live"))
     params = yaml.safe_load(open(os.path.join(ROOT, "src", "mdr_slam", "config", "fusion.yaml")))
-    params.update(map_path=os.path.join(d, "autosave.ply"), autosave_period=AUTOSAVE_PERIOD,
+    params.update(map_path=os.path.join(d, "autosave.ply"), map_dir=d,
+                  autosave_period=AUTOSAVE_PERIOD,
                   resume=True, clean_every=0, publish_rate=2.0)  # no cleaning: the map only grows
     fusion_yaml = os.path.join(d, "fusion.yaml")
     with open(fusion_yaml, "w") as f:
@@ -161,6 +162,7 @@ def test_fusion_skips_clouds_while_tracking_is_lost(rospy_client, start_process,
     name = "fusion_lost"
     node = start_process(["rosrun", "mdr_slam", "fusion_node", "__name:=" + name,
                           "_map_path:=%s" % (tmp_path / "auto.ply"), "_autosave_period:=0.0",
+                          "_map_dir:=%s" % tmp_path,
                           "_voxel_size:=0.05", "_tf_timeout:=0.3", "_clean_every:=0",
                           "/mdr/depth/points:=/%s/cloud" % name, "/mdr/map/points:=/%s/map" % name,
                           "/mdr/map/grid:=/%s/grid" % name, "/mdr/keyframes:=/%s/kf" % name,

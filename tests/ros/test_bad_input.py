@@ -1,10 +1,10 @@
 """Bad input to each node: a clear throttled log line naming the problem, no
 crash, the next valid message is processed, and no NaN or absurd point reaches the map.
 
-Not repeated here (tests/test_depth_node.py, tests/test_fusion_node.py cover them): unsupported
+Not repeated here (tests/ros/test_depth_node.py, tests/ros/test_fusion_node.py cover them): unsupported
 encoding, left/right size mismatch and a stamp without pose for the depth node; empty, all-NaN,
 1e7 m, unknown-frame and one backward cloud for the fusion node. The bag loop (time jumping back
-with the clock) is in tests/test_faults.py.
+with the clock) is in tests/ros/test_faults.py.
 """
 from __future__ import annotations
 
@@ -112,6 +112,7 @@ def test_depth_node_bad_images_info_and_stamps(rospy_client, start_process):
 def _fusion(start_process, tmp_path, name, extra=()):
     return start_process(["rosrun", "mdr_slam", "fusion_node", "__name:=" + name,
                           "_map_path:=%s" % (tmp_path / (name + ".ply")), "_autosave_period:=0.0",
+                          "_map_dir:=%s" % tmp_path,
                           "_voxel_size:=0.05", "_tf_timeout:=0.3", "_clean_every:=0",
                           "_sync_tolerance:=0.02", "/mdr/depth/points:=/%s/cloud" % name,
                           "/mdr/pose:=/%s/pose" % name, "/mdr/map/points:=/%s/map" % name,
