@@ -10,13 +10,17 @@ A thin shell around :class:`mdr_slam.fusion.VoxelMap` (paper section 3.4):
   pose node publishes corrected keyframe poses (local BA, loop closure) the map points follow.
 * ``/mdr/map/points`` (latched, ``~publish_rate`` Hz, voxel-downsampled for display: x, y, z,
   intensity, confidence) and ``/mdr/map/grid`` (nav_msgs/OccupancyGrid, latched) for move_base.
-* services ``~save_map``, ``~load_map``, ``~reset``, ``~export_mesh``; ``~load_map`` param at
-  start; autosave on shutdown and every ``~autosave_period`` s (atomic writes).
-* crash recovery (``~resume``): while running, the node keeps a marker ``<map_path>.running``; a
-  clean shutdown saves and removes it. A node started while the marker is still there (the last
-  one was killed, e.g. respawned by roslaunch) reloads ``map_path``: what is lost is bounded by
-  the integrations of the last ``~autosave_period`` seconds before the crash (plus the clouds that
-  arrive while it restarts).
+* map folders (mdr_slam.io.map_dir): services ``~save_map``, ``~load_map`` (a folder name inside
+  ``~map_dir``; a .ply/.pcd path names one file; with a folder they also call the pose node's
+  ``~save_map``/``~load_map``, ``~pose_node``), ``~reset``, ``~export_mesh``; ``~load_map`` param
+  at start; autosave to ``~map_path`` on shutdown and every ``~autosave_period`` s (atomic writes;
+  none with ``~localization``, which never changes the loaded map's files).
+* crash recovery (``~resume``): while running, the node keeps a marker
+  (``<map_path>/fusion_node.running``, a file's ``<map_path>.running``); a clean shutdown saves
+  and removes it. A node started while the marker is still there (the last one was killed, e.g.
+  respawned by roslaunch) reloads ``map_path``: what is lost is bounded by the integrations of the
+  last ``~autosave_period`` seconds before the crash (plus the clouds that arrive while it
+  restarts).
 * tracking LOST (``/mdr/tracking_state``): a cloud whose stamp falls where the pose node was LOST
   (or not initialised) is skipped, even when tf could interpolate a pose across the gap, so a
   lost tracker never smears the map; integration resumes with the first tracked frame.

@@ -3,6 +3,8 @@
 ``~source``: ``orb`` (ORB-SLAM2-style stereo tracking from mdr_slam.pose) or ``groundtruth``
 (relay a ground-truth PoseStamped of the left camera optical frame in ``map``, e.g. the simulator's
 ``/ground_truth/pose``, so depth and fusion can be developed and measured without tracking error).
+With ``orb``, a saved map can be loaded and reused (``~load_map``, ``~localization``; services
+``~save_map``, ``~load_map``, ``~reset`` and ``/initialpose``: nodes/pose_map_services.py).
 """
 from __future__ import annotations
 
