@@ -4,6 +4,7 @@
     mdr bench BAG --out DIR [--duration S] [--loop] [--rate 1] [--pose-source orb|groundtruth]
         [--left-image TOPIC ... --image-transport compressed --sync-tolerance S --rectified auto]
     mdr bench --ablation --out DIR [--scenes office,corridor] [--duration 30] [--pose-source groundtruth]
+        [--max-range 4] [--configs elas_only,temporal,confidence,full,sgbm_tsdf]
 
 Live (``mdr bench BAG``): starts a private roscore, ``roslaunch mdr_slam mdr.launch bag:=BAG`` (the
 three nodes and ``rosbag play --clock``), samples every node's CPU % and RSS once a second (psutil),
@@ -17,11 +18,16 @@ file's default), ``groundtruth`` relays the bag's ground-truth topic.
 
 For each scene: render the sequence (``mdr sim``, skipped when ``DIR/sim_<scene>`` exists), run the
 offline pipeline (``mdr run``) four times -- ELAS-only baseline (temporal off, confidence off),
-temporal only, confidence only, full -- and score each map against the simulator's ground-truth
-map (``mdr eval map``: RMSE of estimated-to-truth distances, completeness at 5 cm). The runs
-place the frames with the simulator's true poses unless ``--pose-source orb`` (``mdr run`` is
-given ``--pose-source`` explicitly: its own default is orb). Writes
-``DIR/ablation.json``, ``DIR/ablation.md`` and ``DIR/ablation.png``.
+temporal only, confidence only, full -- plus a peer, ``sgbm_tsdf`` (OpenCV StereoSGBM depth
+fused in Open3D's ScalableTSDFVolume, mdr_slam.eval.peer, on the same frames with the true
+poses), and score each map against the simulator's ground-truth map (``mdr eval map``: RMSE of
+estimated-to-truth distances, completeness at 5 cm over the whole map; and completeness,
+precision and F-score, overall and per surface label, within ``--max-range`` of the camera path:
+what a stereo rig can see) and its occupancy grid against the true one (``mdr eval grid``:
+obstacle-cell recall and precision with one cell of tolerance, occupied cells on the camera's
+route). The runs place the frames with the simulator's true poses unless ``--pose-source orb``
+(``mdr run`` is given ``--pose-source`` explicitly: its own default is orb; the peer always uses
+the true poses). Writes ``DIR/ablation.json``, ``DIR/ablation.md`` and ``DIR/ablation.png``.
 """
 from __future__ import annotations
 
@@ -35,7 +41,7 @@ from collections import OrderedDict
 
 import numpy as np
 
-from ..eval import ate, map_alignment, map_metrics
+from ..eval import DEFAULT_MAX_RANGE, ate, grid_metrics, grid_params, map_alignment, map_metrics
 from ..io import cloud_xyz, read_cloud, read_tum
 from . import mdr_command
 from .main_run import add_bag_input_arguments, bag_input_argv
@@ -45,6 +51,10 @@ CONFIGS = OrderedDict([
     ("temporal", {"temporal": True, "confidence": False}),
     ("confidence", {"temporal": False, "confidence": True}),
     ("full", {"temporal": True, "confidence": True}),
+])
+# peers: other mapping methods run on the same frames (python -m MODULE BAG --out DIR ...)
+PEERS = OrderedDict([
+    ("sgbm_tsdf", "mdr_slam.eval.peer"),
 ])
 
 
@@ -64,11 +74,14 @@ def add_parser(sub, name, help_text):
     p.add_argument("--pose-source", choices=("groundtruth", "orb"), default=None,
                    help="default: groundtruth for --ablation (map quality of depth and fusion "
                         "alone), orb live (as on a robot)")
-    p.add_argument("--configs", default=",".join(CONFIGS),
-                   help="subset of %s" % ", ".join(CONFIGS))
+    p.add_argument("--configs", default=",".join(list(CONFIGS) + list(PEERS)),
+                   help="subset of %s" % ", ".join(list(CONFIGS) + list(PEERS)))
     p.add_argument("--jobs", type=int, default=2, help="runs in parallel (one per core)")
     p.add_argument("--max-frames", type=int, default=None)
     p.add_argument("--threshold", type=float, default=0.05, help="completeness threshold (m)")
+    p.add_argument("--max-range", type=float, default=DEFAULT_MAX_RANGE,
+                   help="ablation: also score the maps within this many metres of the camera "
+                        "path (default %g)" % DEFAULT_MAX_RANGE)
     p.add_argument("--launch-arg", action="append", default=[], metavar="NAME:=VALUE",
                    help="live: extra mdr.launch argument (repeatable), e.g. depth_prefix:=")
     p.add_argument("--set", action="append", default=[], metavar="NODE.KEY=VALUE",
@@ -119,8 +132,10 @@ def run_ablation(args) -> int:
     scenes = [s for s in args.scenes.split(",") if s]
     configs = [c for c in args.configs.split(",") if c]
     for c in configs:
-        if c not in CONFIGS:
-            raise SystemExit("unknown config %r (known: %s)" % (c, ", ".join(CONFIGS)))
+        if c not in CONFIGS and c not in PEERS:
+            raise SystemExit("unknown config %r (known: %s)" % (c, ", ".join(list(CONFIGS) +
+                                                                              list(PEERS))))
+    gparams = _grid_params(args.set)
     # 1. sequences
     sims = []
     for scene in scenes:
@@ -135,11 +150,19 @@ def run_ablation(args) -> int:
         if _run_parallel([(name, argv, log)], 1)[name] != 0:
             print(open(log, errors="replace").read()[-2000:], file=sys.stderr)
             return 1
-    # 2. the four runs per scene
+    # 2. the four runs (and the peers) per scene
     runs = []
     for scene in scenes:
         for c in configs:
             d = os.path.join(args.out, "%s_%s" % (scene, c))
+            if c in PEERS:
+                argv = [sys.executable, "-m", PEERS[c],
+                        os.path.join(args.out, "sim_" + scene, "sequence.bag"), "--out", d]
+                argv += bag_input_argv(args)
+                if args.max_frames:
+                    argv += ["--max-frames", str(args.max_frames)]
+                runs.append(("%s_%s" % (scene, c), argv, d + ".log"))
+                continue
             argv = mdr_command() + ["run", os.path.join(args.out, "sim_" + scene, "sequence.bag"),
                              "--out", d, "--pose-source", args.pose_source or "groundtruth", "--quiet",
                              "--temporal", "on" if CONFIGS[c]["temporal"] else "off",
@@ -159,17 +182,20 @@ def run_ablation(args) -> int:
     for scene in scenes:
         gt = read_cloud(os.path.join(args.out, "sim_" + scene, "gt_map.ply"))
         gt_xyz = cloud_xyz(gt)
+        gt_path = read_tum(os.path.join(args.out, "sim_" + scene, "groundtruth.tum"))
         results[scene] = OrderedDict()
         for c in configs:
             name = "%s_%s" % (scene, c)
             d = os.path.join(args.out, name)
             if codes.get(name) != 0:
-                results[scene][c] = {"error": "mdr run failed, see %s.log" % d}
+                results[scene][c] = {"error": "%s failed, see %s.log" % (
+                    "the peer" if c in PEERS else "mdr run", d)}
                 continue
-            est = cloud_xyz(read_cloud(os.path.join(d, "map.ply")))
+            cloud = read_cloud(os.path.join(d, "map.ply"))
+            est = cloud_xyz(cloud)
             summ = json.load(open(os.path.join(d, "summary.json")))
             traj = None
-            if (args.pose_source or "groundtruth") == "orb":
+            if (args.pose_source or "groundtruth") == "orb" and c not in PEERS:
                 # estimated poses: the map is in the tracker's frame; move it into the ground
                 # truth's by the trajectory's SE(3) alignment (as evo aligns trajectories)
                 est_traj = read_tum(os.path.join(d, "trajectory.tum"))
@@ -177,7 +203,20 @@ def run_ablation(args) -> int:
                 traj = ate(est_traj, gt_traj, "se3")
                 al = map_alignment(est_traj, gt_traj)
                 est = est @ np.asarray(al["rotation"]).T + np.asarray(al["translation"])
-            m = map_metrics(est, gt_xyz, threshold=args.threshold, gt_labels=gt.get("surface"))
+            # the maps are in the simulator's map frame (true poses, or aligned above), so the
+            # true camera path is their path too
+            try:
+                m = map_metrics(est, gt_xyz, threshold=args.threshold, gt_labels=gt.get("surface"),
+                                path=gt_path, max_range=args.max_range)
+                # the fusion node's grid: confident points of a confidence map, all points otherwise
+                mc = gparams["min_confidence"] if CONFIGS.get(c, {}).get("confidence") else 0
+                g = grid_metrics(est, gt_xyz, gt.get("surface"), gt_path, cloud.get("confidence"),
+                                 mc, gparams["resolution"], gparams["z_min"], gparams["z_max"],
+                                 gparams["up_axis"], gparams["free_band"], 1, args.max_range)
+            except ValueError as e:   # e.g. an empty map: one row says so, the others are scored
+                results[scene][c] = {"error": "not scored: %s" % e}
+                codes[name] = 1
+                continue
             prec, comp = m["accuracy"], m["completeness"]
             results[scene][c] = OrderedDict([
                 ("rmse_m", m["accuracy_rmse"]), ("completeness", comp),
@@ -187,6 +226,8 @@ def run_ablation(args) -> int:
                                    "completeness": v.get("completeness"),
                                    "n": v.get("n_estimate")}
                                for k, v in m.get("per_label", {}).items()}),
+                ("in_range", _in_range_row(m["in_range"])),
+                ("grid", _grid_row(g)),
                 ("frames", summ["frames_in"]), ("frames_posed", summ.get("frames_posed")),
                 ("timing", summ["timing"].get("frame"))])
             if traj is not None:
@@ -194,7 +235,7 @@ def run_ablation(args) -> int:
                 results[scene][c]["path_length_m"] = traj.stats["path_length"]
     report = {"scenes": scenes, "configs": configs, "duration_s": args.duration,
               "pose_source": args.pose_source or "groundtruth", "threshold_m": args.threshold,
-              "results": results}
+              "max_range_m": args.max_range, "grid": dict(gparams), "results": results}
     with open(os.path.join(args.out, "ablation.json"), "w") as f:
         json.dump(report, f, indent=2)
     md = _markdown(report)
@@ -203,6 +244,49 @@ def run_ablation(args) -> int:
     _plot(report, os.path.join(args.out, "ablation.png"))
     print(md)
     return 0 if all(v == 0 for v in codes.values()) else 1
+
+
+def _grid_params(sets) -> dict:
+    """The fusion node's grid parameters, with the ``--set fusion.grid_*=V`` overrides the runs
+    get too (so the grid is scored as the node would publish it with them)."""
+    over = {}
+    names = {"grid_resolution": "resolution", "grid_z_min": "z_min", "grid_z_max": "z_max",
+             "grid_up_axis": "up_axis", "grid_free_band": "free_band",
+             "grid_min_confidence": "min_confidence"}
+    for it in sets or []:
+        key, _, val = it.partition("=")
+        node, _, k = key.partition(".")
+        if node == "fusion" and k in names:
+            over[names[k]] = val
+    return grid_params(**over)
+
+
+def _in_range_row(r) -> dict:
+    """The table's figures of map_metrics' in_range block."""
+    def row(b):
+        return OrderedDict([("completeness", b.get("completeness")), ("precision", b.get("accuracy")),
+                            ("fscore", b.get("fscore")), ("rmse_m", b.get("accuracy_rmse")),
+                            ("n_ground_truth", b["n_ground_truth"]), ("n_estimate", b["n_estimate"])])
+    out = row(r)
+    out["max_range_m"] = r["max_range_m"]
+    out["per_label"] = OrderedDict((k, row(v)) for k, v in r.get("per_label", {}).items())
+    return out
+
+
+def _grid_row(g) -> dict:
+    """The table's figures of grid_metrics."""
+    out = OrderedDict([("recall", g["recall"]), ("precision", g["precision"]),
+                       ("n_true_cells", g["n_true_cells"]), ("n_est_cells", g["n_est_cells"]),
+                       ("min_confidence", g["min_confidence"])])
+    out["recall_per_label"] = OrderedDict((k, v["recall"]) for k, v in g.get("per_label", {}).items())
+    rng = g.get("in_range", {})
+    out["recall_in_range"] = rng.get("recall")
+    out["recall_in_range_per_label"] = OrderedDict(
+        (k, v["recall"]) for k, v in rng.get("per_label", {}).items())
+    out["route_cells"] = g["route"]["n_cells"]
+    out["route_occupied"] = g["route"]["occupied_est"]
+    out["route_occupied_true"] = g["route"]["occupied_true"]
+    return out
 
 
 def _markdown(report) -> str:
@@ -229,7 +313,57 @@ def _markdown(report) -> str:
                 scene, c, r["rmse_m"], 100 * r["completeness"], 100 * r["accuracy_5cm"],
                 r.get("fscore", float("nan")), r["n_points"],
                 cell("low_texture"), cell("textured"), cell("specular"), rel, at))
+    lines += _markdown_in_range(report)
     return "\n".join(lines) + "\n"
+
+
+def _pct(v) -> str:
+    return "-" if v is None else "%.1f %%" % (100 * v)
+
+
+def _f3(v) -> str:
+    return "-" if v is None else "%.3f" % v
+
+
+def _markdown_in_range(report) -> list:
+    """The second table: what the rig can see (within max_range of the path) and the grid."""
+    if not any("in_range" in r for res in report["results"].values() for r in res.values()):
+        return []
+    g = report.get("grid", {})
+    lines = ["", "## Within %g m of the camera path, and the occupancy grid" % report["max_range_m"],
+             "",
+             "Map: completeness (C), precision (P) and F-score at %.0f cm of the ground-truth and "
+             "estimated points within %g m of the true camera path (per label: ground-truth points "
+             "of that surface; estimated points labelled by their nearest ground-truth point). "
+             "Grid: the fusion node's obstacle grid (%g m cells, band %g-%g m along %s; points of "
+             "confidence >= %s for confidence maps, all points otherwise) of the map against the one "
+             "of the ground-truth map: obstacle-cell recall (also of low-texture cells) and precision "
+             "with one cell of tolerance; route: occupied estimated cells on the camera's ground "
+             "track (must be 0). Time: wall time per frame, median / p90." % (
+                 100 * report["threshold_m"], report["max_range_m"], g.get("resolution", 0.05),
+                 g.get("z_min", 0.1), g.get("z_max", 1.5), g.get("up_axis", "z"),
+                 g.get("min_confidence", 3)),
+             "",
+             "| scene | config | C | P | F-score | F low-texture | C low-texture | F textured "
+             "| F specular | grid recall | grid recall low-texture | grid precision | route cells "
+             "| ms/frame |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for scene, res in report["results"].items():
+        for c, r in res.items():
+            if "in_range" not in r:
+                continue
+            ir, gr = r["in_range"], r["grid"]
+            pl = ir["per_label"]
+            lab = lambda k, f: pl.get(k, {}).get(f)
+            t = r.get("timing") or {}
+            ms = ("%.0f / %.0f" % (t["median_ms"], t["p90_ms"])) if "median_ms" in t else "-"
+            lines.append("| %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %d / %d | %s |" % (
+                scene, c, _pct(ir["completeness"]), _pct(ir["precision"]), _f3(ir["fscore"]),
+                _f3(lab("low_texture", "fscore")), _pct(lab("low_texture", "completeness")),
+                _f3(lab("textured", "fscore")), _f3(lab("specular", "fscore")),
+                _pct(gr["recall"]), _pct(gr["recall_per_label"].get("low_texture")),
+                _pct(gr["precision"]), gr["route_occupied"], gr["route_cells"], ms))
+    return lines
 
 
 def _plot(report, path):

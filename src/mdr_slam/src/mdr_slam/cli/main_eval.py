@@ -1,8 +1,9 @@
-"""``mdr eval ate|rpe|map|depth``: the paper's metrics on files, printed as JSON.
+"""``mdr eval ate|rpe|map|grid|depth``: the paper's metrics on files, printed as JSON.
 
     mdr eval ate EST GT [--format tum|kitti|euroc] [--align se3|sim3|scale|none] [--plot out.png]
     mdr eval rpe EST GT [--delta 10 --delta-unit m] [--align none]
-    mdr eval map EST.ply GT.ply [--threshold 0.05] [--plot out.png]
+    mdr eval map EST.ply GT.ply [--threshold 0.05] [--plot out.png] [--trajectory TUM --max-range 4]
+    mdr eval grid MAP.ply GT_MAP.ply [--trajectory TUM] [--min-confidence N] [--tolerance 1]
     mdr eval depth EST GT [--est-scale 1 --gt-scale 1] [--depth]   (files or folders of frames)
 """
 from __future__ import annotations
@@ -15,9 +16,11 @@ import numpy as np
 
 from ..eval.depth import (MIDDLEBURY, depth_error_metrics, depth_metrics, load_middlebury,
                           read_disparity)
-from ..eval.map import map_metrics
+from ..eval.grid import grid_metrics, grid_params
+from ..eval.map import DEFAULT_MAX_RANGE, map_metrics
 from ..eval.plot import plot_ate, plot_map_errors
-from ..eval.trajectory import alignment_matrix, ate, read_for_eval, rpe, transform_trajectory
+from ..eval.trajectory import (alignment_matrix, ate, read_for_eval, rpe,
+                               transform_trajectory)
 from ..io.atomic import atomic_write
 from ..io.pointcloud import cloud_xyz, read_cloud
 
@@ -69,8 +72,41 @@ def add_parser(subparsers, name, help_text):
                    help="comma-separated thresholds to report as well")
     m.add_argument("--label-field", default="surface", help="per-point label field of the GT cloud")
     m.add_argument("--plot", default=None, help="save a distance histogram / curves figure")
+    m.add_argument("--trajectory", default=None, metavar="TRAJ",
+                   help="camera path in the clouds' frame (TUM, KITTI or EuRoC): also score the "
+                        "points within --max-range of it (block in_range)")
+    m.add_argument("--max-range", type=float, default=DEFAULT_MAX_RANGE,
+                   help="with --trajectory: metres from the path (default %g)" % DEFAULT_MAX_RANGE)
     m.add_argument("--json", default=None)
     m.set_defaults(func=run_map)
+
+    gp = grid_params()
+    h = "the occupancy grid of a map against the true one of a ground-truth cloud"
+    g = sub.add_parser("grid", help=h, description=h + ": obstacle-cell recall and precision "
+                       "with a tolerance in cells, and occupied cells on the camera's route. Both "
+                       "grids are the fusion node's /mdr/map/grid rules (mdr_slam.fusion."
+                       "occupancy_grid) with its parameters (defaults: FusionNodeConfig).")
+    g.add_argument("est", help="estimated map (PLY or PCD; its 'confidence' field is used)")
+    g.add_argument("gt", help="ground-truth cloud (optional per-point 'surface' label)")
+    g.add_argument("--trajectory", default=None, metavar="TRAJ",
+                   help="camera path in the map frame (TUM, KITTI or EuRoC): route cells and "
+                        "recall within --max-range")
+    g.add_argument("--max-range", type=float, default=DEFAULT_MAX_RANGE,
+                   help="with --trajectory: metres from the path (default %g)" % DEFAULT_MAX_RANGE)
+    g.add_argument("--min-confidence", type=int, default=None,
+                   help="map points of at least this confidence mark cells (default: "
+                        "grid_min_confidence %d; 0, i.e. all points, for a map without a "
+                        "confidence field or whose summary.json beside it says confidence "
+                        "false)" % gp["min_confidence"])
+    g.add_argument("--tolerance", type=int, default=1, help="cells (Chebyshev), default 1")
+    g.add_argument("--resolution", type=float, default=gp["resolution"])
+    g.add_argument("--z-min", type=float, default=gp["z_min"])
+    g.add_argument("--z-max", type=float, default=gp["z_max"])
+    g.add_argument("--up-axis", default=gp["up_axis"])
+    g.add_argument("--free-band", type=float, default=gp["free_band"])
+    g.add_argument("--label-field", default="surface", help="per-point label field of the GT cloud")
+    g.add_argument("--json", default=None)
+    g.set_defaults(func=run_grid)
 
     h = "per-frame disparity or depth errors against ground truth"
     d = sub.add_parser("depth", help=h, description=h)
@@ -146,14 +182,53 @@ def run_map(args):
         est = read_cloud(args.est)
         gt = read_cloud(args.gt)
         labels = gt.get(args.label_field) if args.label_field else None
+        path = read_for_eval(args.trajectory) if args.trajectory else None
         res = map_metrics(cloud_xyz(est), cloud_xyz(gt), args.threshold, thresholds, labels,
-                          return_distances=bool(args.plot))
+                          return_distances=bool(args.plot), path=path, max_range=args.max_range)
     except (ValueError, OSError, KeyError) as e:
         print("mdr eval map: %s" % e, file=sys.stderr)
         return 1
     if args.plot:
         plot_map_errors(res.pop("_d_acc"), res.pop("_d_comp"), args.plot, thresholds)
         res["plot"] = os.path.abspath(args.plot)
+    _emit(res, args.json)
+    return 0
+
+
+def map_grid_confidence(path: str, cloud, default: int) -> int:
+    """Minimum confidence of a map's grid points: ``default`` (grid_min_confidence), or 0 (all
+    points) for a map without a confidence field or one that ``mdr run --confidence off`` wrote
+    (its summary.json beside map.ply says so): the plain voxel grid has no confidence to filter
+    on, as the fusion node's grid of such a map has none (mdr_slam.nav.map_min_confidence)."""
+    if "confidence" not in cloud:
+        return 0
+    summ = os.path.join(os.path.dirname(os.path.abspath(path)), "summary.json")
+    if os.path.exists(summ):
+        try:
+            with open(summ) as f:
+                if json.load(f).get("confidence") is False:
+                    return 0
+        except (ValueError, OSError):
+            pass   # not mdr run's summary: keep the default
+    return int(default)
+
+
+def run_grid(args):
+    try:
+        est = read_cloud(args.est)
+        gt = read_cloud(args.gt)
+        labels = gt.get(args.label_field) if args.label_field else None
+        path = read_for_eval(args.trajectory) if args.trajectory else None
+        mc = args.min_confidence
+        if mc is None:
+            mc = map_grid_confidence(args.est, est, grid_params()["min_confidence"])
+        res = grid_metrics(cloud_xyz(est), cloud_xyz(gt), labels, path,
+                           est.get("confidence"), mc, args.resolution,
+                           args.z_min, args.z_max, args.up_axis, args.free_band, args.tolerance,
+                           args.max_range if path is not None else None)
+    except (ValueError, OSError, KeyError) as e:
+        print("mdr eval grid: %s" % e, file=sys.stderr)
+        return 1
     _emit(res, args.json)
     return 0
 
