@@ -43,6 +43,7 @@ import numpy as np
 
 from ..eval import DEFAULT_MAX_RANGE, ate, grid_metrics, grid_params, map_alignment, map_metrics
 from ..io import cloud_xyz, read_cloud, read_tum
+from ..nav import map_min_confidence
 from . import mdr_command
 from .main_run import add_bag_input_arguments, bag_input_argv
 
@@ -209,7 +210,9 @@ def run_ablation(args) -> int:
                 m = map_metrics(est, gt_xyz, threshold=args.threshold, gt_labels=gt.get("surface"),
                                 path=gt_path, max_range=args.max_range)
                 # the fusion node's grid: confident points of a confidence map, all points otherwise
-                mc = gparams["min_confidence"] if CONFIGS.get(c, {}).get("confidence") else 0
+                mc = map_min_confidence({"confidence": CONFIGS.get(c, {}).get("confidence", False),
+                                         "display_min_confidence": gparams["min_confidence"],
+                                         "grid_min_confidence": gparams["min_confidence"]})[1]
                 g = grid_metrics(est, gt_xyz, gt.get("surface"), gt_path, cloud.get("confidence"),
                                  mc, gparams["resolution"], gparams["z_min"], gparams["z_max"],
                                  gparams["up_axis"], gparams["free_band"], 1, args.max_range)
@@ -337,16 +340,17 @@ def _markdown_in_range(report) -> list:
              "of that surface; estimated points labelled by their nearest ground-truth point). "
              "Grid: the fusion node's obstacle grid (%g m cells, band %g-%g m along %s; points of "
              "confidence >= %s for confidence maps, all points otherwise) of the map against the one "
-             "of the ground-truth map: obstacle-cell recall (also of low-texture cells) and precision "
-             "with one cell of tolerance; route: occupied estimated cells on the camera's ground "
-             "track (must be 0). Time: wall time per frame, median / p90." % (
+             "of the ground-truth map: obstacle-cell recall and precision with one cell of "
+             "tolerance (recall of all true cells, and of those of the true points within range); "
+             "route: occupied estimated cells on the camera's ground track, of all its cells "
+             "(must be 0). Time: wall time per frame, median / p90." % (
                  100 * report["threshold_m"], report["max_range_m"], g.get("resolution", 0.05),
                  g.get("z_min", 0.1), g.get("z_max", 1.5), g.get("up_axis", "z"),
                  g.get("min_confidence", 3)),
              "",
              "| scene | config | C | P | F-score | F low-texture | C low-texture | F textured "
-             "| F specular | grid recall | grid recall low-texture | grid precision | route cells "
-             "| ms/frame |",
+             "| F specular | grid recall (all / in range) | grid recall low-texture (in range) "
+             "| grid precision | route cells occupied | ms/frame |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for scene, res in report["results"].items():
         for c, r in res.items():
@@ -361,7 +365,8 @@ def _markdown_in_range(report) -> list:
                 scene, c, _pct(ir["completeness"]), _pct(ir["precision"]), _f3(ir["fscore"]),
                 _f3(lab("low_texture", "fscore")), _pct(lab("low_texture", "completeness")),
                 _f3(lab("textured", "fscore")), _f3(lab("specular", "fscore")),
-                _pct(gr["recall"]), _pct(gr["recall_per_label"].get("low_texture")),
+                "%s / %s" % (_pct(gr["recall"]), _pct(gr["recall_in_range"])),
+                _pct(gr["recall_in_range_per_label"].get("low_texture")),
                 _pct(gr["precision"]), gr["route_occupied"], gr["route_cells"], ms))
     return lines
 
