@@ -74,6 +74,63 @@ def _node_processes(launch_pid: int) -> Dict[str, "object"]:
     return out
 
 
+class _NodeUsage:
+    """CPU % and memory of one node's process together with its child processes (recursively:
+    the pose node may run bundle adjustment in a child). CPU: seconds of user and system time
+    of the process and its live descendants, each with its reaped children's, between two
+    samples; a child that ends moves its time into its parent's reaped-children count, so the
+    sum carries on (never counted down, so a child between its exit and its reaping is not
+    counted twice)."""
+
+    def __init__(self, proc):
+        self.proc = proc
+        self.pid = proc.pid
+        self.t_prev = time.time()
+        self.cpu_prev = self._cpu_s(self._members())
+
+    def _members(self) -> list:
+        try:
+            return [self.proc] + self.proc.children(recursive=True)
+        except psutil.Error:
+            return [self.proc]
+
+    @staticmethod
+    def _cpu_s(procs) -> float:
+        total = 0.0
+        for q in procs:
+            try:
+                t = q.cpu_times()
+            except psutil.Error:   # ended since it was listed
+                continue
+            total += t.user + t.system + t.children_user + t.children_system
+        return total
+
+    def sample(self) -> Optional[dict]:
+        """{"cpu": %, "rss_mb", "anon_mb"} since the last sample; None when the node is gone."""
+        if not self.proc.is_running():
+            return None
+        procs = self._members()
+        now = time.time()
+        cpu_s = self._cpu_s(procs)
+        dt = now - self.t_prev
+        cpu = 100.0 * max(0.0, cpu_s - self.cpu_prev) / dt if dt > 0.05 else 0.0
+        self.cpu_prev = max(self.cpu_prev, cpu_s)
+        self.t_prev = now
+        rss = anon = 0.0
+        for q in procs:
+            try:
+                mi = q.memory_info()
+            except psutil.Error:
+                if q is self.proc:
+                    return None
+                continue
+            rss += mi.rss
+            # anonymous memory (heap, arrays): RSS without resident file pages (shared
+            # libraries), which the kernel may drop under memory pressure at any time
+            anon += mi.rss - getattr(mi, "shared", 0)
+        return {"cpu": cpu, "rss_mb": rss / 1e6, "anon_mb": anon / 1e6}
+
+
 def _live_ate(bag: str, poses, out_dir: Optional[str] = None,
               topic: Optional[str] = None) -> Optional[dict]:
     """ATE of the pose node's poses as it published them (before later BA and loop corrections
@@ -96,8 +153,11 @@ def _live_ate(bag: str, poses, out_dir: Optional[str] = None,
         e = ate(est, ref)
     except Exception:
         return None
+    # path_m: the ground truth at the published poses' stamps; gt_path_m: the bag's whole
+    # ground-truth path (what ATE is given as a share of)
     return {"rmse_m": round(e.stats["rmse"], 4), "max_m": round(e.stats["max"], 4),
-            "n": int(e.stats["n"]), "path_m": round(e.stats["path_length"], 3)}
+            "n": int(e.stats["n"]), "path_m": round(e.stats["path_length"], 3),
+            "gt_path_m": round(ref.path_length(), 3)}
 
 
 class _Listener:
@@ -255,25 +315,19 @@ def run_live(args) -> int:
             os.path.basename(bag), pose_source, duration, dur_bag, args.rate,
             ", looped" if args.loop else ""), file=sys.stderr)
         samples: List[dict] = []
-        procs: Dict[str, object] = {}
+        procs: Dict[str, _NodeUsage] = {}
         t_start = listener.t_start = time.time()
         while time.time() - t_start < duration:
             time.sleep(1.0)
             for n, p in _node_processes(launch.pid).items():
                 if n not in procs or procs[n].pid != p.pid:   # new or respawned node
-                    p.cpu_percent(None)
-                    procs[n] = p
+                    procs[n] = _NodeUsage(p)
             row = {"t": round(time.time() - t_start, 2)}
-            for n, p in procs.items():
-                try:
-                    row[n + ".cpu"] = p.cpu_percent(None)
-                    mi = p.memory_info()
-                    row[n + ".rss_mb"] = mi.rss / 1e6
-                    # anonymous memory (heap, arrays): RSS without resident file pages (shared
-                    # libraries), which the kernel may drop under memory pressure at any time
-                    row[n + ".anon_mb"] = (mi.rss - getattr(mi, "shared", 0)) / 1e6
-                except psutil.Error:
-                    pass
+            for n, u in procs.items():
+                use = u.sample()   # the node with its child processes
+                if use is not None:
+                    for k, v in use.items():
+                        row[n + "." + k] = v
             has_nodes = len(row) > 1
             with listener.lock:       # the map's size next to the memory, for the long-run plot
                 if listener.map_points:
@@ -455,6 +509,8 @@ def _summarize(args, bag, lst: "_Listener", samples, elapsed, pose_source) -> di
     r["depth_cpu_ms_per_cloud"] = {k: fdiag("depth", "cpu_ms_%s_per_cloud" % k)
                                    for k in ("match", "filter")}
     r["pose_dropped_busy"] = fdiag("pose", "frames_dropped_busy")   # newest pair kept
+    r["pose_keyframes"] = fdiag("pose", "keyframes")
+    r["pose_loop_closures"] = fdiag("pose", "loop_closures")
     r["map_points"] = fdiag("fusion", "map points")
     cpu, rss = OrderedDict(), OrderedDict()
     tot_cpu = np.zeros(len(samples))
@@ -511,7 +567,10 @@ def _report_md(r) -> str:
                                       r["clouds_received_by_fusion"], r["clouds_integrated"]),
              "| stereo pairs received by depth / in the bag | %s / %s |" % (r["frames_in"],
                                                                           r["frames_in_bag"]),
-             "| frames tracked | %s |" % r["frames_tracked"],
+             "| frames tracked; LOST | %s; %s |" % (r["frames_tracked"],
+                                                   r["tracking_states"].get("LOST", 0)),
+             "| keyframes; loop closures (pose node) | %s; %s |" % (r.get("pose_keyframes"),
+                                                                   r.get("pose_loop_closures")),
              "| live ATE (poses as published, SE(3) aligned to the bag's ground truth): RMSE / "
              "max / poses | %s |" % ("-" if not r["live_ate"] else "%.3f m / %.3f m / %d" % (
                  r["live_ate"]["rmse_m"], r["live_ate"]["max_m"], r["live_ate"]["n"])),
@@ -522,7 +581,8 @@ def _report_md(r) -> str:
                  r["latency_ms"]["median"], r["latency_ms"]["p90"]),
              "| latency image stamp -> depth cloud, median / p90 | %s / %s ms |" % (
                  r["depth_latency_ms"]["median"], r["depth_latency_ms"]["p90"]),
-             "", "CPU and RSS sampled once a second while data flowed:", "",
+             "", "CPU and RSS sampled once a second while data flowed (each node with its "
+             "child processes):", "",
              "| node | CPU % median / max | RSS MB median / max |", "|---|---|---|"]
     for n in list(NODES) + ["total"]:
         lines.append("| %s | %s / %s | %s / %s |" % (n, r["cpu_percent"][n]["median"],

@@ -5,6 +5,8 @@
         [--left-image TOPIC ... --image-transport compressed --sync-tolerance S --rectified auto]
     mdr bench --ablation --out DIR [--scenes office,corridor] [--duration 30] [--pose-source groundtruth]
         [--max-range 4] [--configs elas_only,temporal,confidence,full,sgbm_tsdf]
+    mdr bench BAG --out DIR --compare [--runs 3] [--no-live] [--max-frames N]
+    mdr bench --compare --kitti DIR | --euroc DIR --out DIR [--runs 3] [--max-frames N]
 
 Live (``mdr bench BAG``): starts a private roscore, ``roslaunch mdr_slam mdr.launch bag:=BAG`` (the
 three nodes and ``rosbag play --clock``), samples every node's CPU % and RSS once a second (psutil),
@@ -28,6 +30,16 @@ obstacle-cell recall and precision with one cell of tolerance, occupied cells on
 route). The runs place the frames with the simulator's true poses unless ``--pose-source orb``
 (``mdr run`` is given ``--pose-source`` explicitly: its own default is orb; the peer always uses
 the true poses). Writes ``DIR/ablation.json``, ``DIR/ablation.md`` and ``DIR/ablation.png``.
+
+Tracker comparison (``--compare``): the built-in tracker (``mdr``) and ORB-SLAM3 (``orbslam3``,
+pyorbslam3) on the same input. ``--runs`` times, alternating, the live benchmark with each
+backend (``--set pose.backend=...``; into ``DIR/live_<backend>_<i>/``, its output in
+``DIR/live_<backend>_<i>.log``), then the offline tracker benchmark (mdr_slam.eval.tracker: the
+frames rectified in memory, CPU per frame, track time, tracked/LOST, ATE as published and
+final) ``--runs`` times per backend. ``--no-live``, ``--kitti DIR`` and ``--euroc DIR``: offline
+only. Writes ``DIR/compare.json`` and ``DIR/compare.md``: both tables (median and min-max over
+the runs), the live ATE against the same backend's offline ATE, and the built-in tracker's
+targets, each with yes/no. Without pyorbslam3 only ``mdr`` runs, and the report says so.
 """
 from __future__ import annotations
 
@@ -45,7 +57,7 @@ from ..eval import DEFAULT_MAX_RANGE, ate, grid_metrics, grid_params, map_alignm
 from ..io import cloud_xyz, read_cloud, read_tum
 from ..nav import map_min_confidence
 from . import mdr_command
-from .main_run import add_bag_input_arguments, bag_input_argv
+from .main_run import _overrides, add_bag_input_arguments, bag_input_argv, bag_topics
 
 CONFIGS = OrderedDict([
     ("elas_only", {"temporal": False, "confidence": False}),
@@ -64,6 +76,16 @@ def add_parser(sub, name, help_text):
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("bag", nargs="?", help="bag to play live (omit with --ablation)")
     p.add_argument("--ablation", action="store_true", help="run the offline map ablation")
+    p.add_argument("--compare", action="store_true",
+                   help="compare the built-in tracker (mdr) with ORB-SLAM3 (orbslam3): live and "
+                        "offline, --runs times each")
+    p.add_argument("--runs", type=int, default=3,
+                   help="--compare: runs per backend, live and offline (default 3)")
+    p.add_argument("--no-live", action="store_true", help="--compare: the offline comparison only")
+    p.add_argument("--kitti", metavar="DIR",
+                   help="--compare: a KITTI odometry folder instead of a BAG (offline only)")
+    p.add_argument("--euroc", metavar="DIR",
+                   help="--compare: an EuRoC (ASL) folder instead of a BAG (offline only)")
     p.add_argument("--out", required=True)
     p.add_argument("--loop", action="store_true", help="live: play the bag in a loop")
     p.add_argument("--rate", type=float, default=1.0, help="live: rosbag play rate")
@@ -117,6 +139,10 @@ def _run_parallel(cmds, jobs):
 
 
 def run(args) -> int:
+    if args.compare:
+        return run_compare(args)
+    if args.kitti or args.euroc:
+        raise SystemExit("mdr bench: --kitti and --euroc go with --compare")
     if not args.ablation:
         if not args.bag:
             raise SystemExit("mdr bench: give a BAG for the live benchmark, or --ablation")
@@ -126,6 +152,127 @@ def run(args) -> int:
         args.launch_arg = _input_launch_args(args) + list(args.launch_arg or [])
         return run_live(args)
     return run_ablation(args)
+
+
+def _fell_back(run_dir: str) -> bool:
+    """Whether a live run's pose node logged that it could not start its backend and tracked
+    with the built-in one (its ROS log under ``run_dir/roslog``)."""
+    for root, _, files in os.walk(os.path.join(run_dir, "roslog")):
+        for f in files:
+            if f.startswith("pose_node") and f.endswith(".log"):
+                with open(os.path.join(root, f), errors="replace") as fh:
+                    if "using the built-in tracker" in fh.read():
+                        return True
+    return False
+
+
+def _live_compare_run(args, backend: str, run_dir: str, log: str):
+    """One live benchmark (``mdr bench BAG``, a process of its own: a process is one ROS node
+    for good) with ``pose.backend=backend``; ``(bench.json dict or None, error or None)``."""
+    argv = mdr_command() + ["bench", os.path.abspath(args.bag), "--out", run_dir,
+                            "--rate", str(args.rate)]
+    if args.loop:
+        argv.append("--loop")
+    if args.live_duration:
+        argv += ["--live-duration", str(args.live_duration)]
+    for a in args.launch_arg or []:
+        argv += ["--launch-arg", a]
+    for it in list(args.set or []) + ["pose.backend=" + backend]:   # the last value wins
+        argv += ["--set", it]
+    argv += bag_input_argv(args)
+    with open(log, "wb") as f:
+        code = subprocess.call(argv, stdout=f, stderr=subprocess.STDOUT)
+    path = os.path.join(run_dir, "bench.json")
+    if code != 0 or not os.path.exists(path):
+        print(open(log, errors="replace").read()[-2000:], file=sys.stderr)
+        return None, "the live benchmark failed (exit %d), see %s" % (code, log)
+    if backend != "mdr" and _fell_back(run_dir):
+        return None, ("the pose node could not start %s and tracked with the built-in tracker, "
+                      "see %s" % (backend, os.path.join(run_dir, "roslog")))
+    with open(path) as f:
+        return json.load(f), None
+
+
+def run_compare(args) -> int:
+    """``--compare``: the module docstring's tracker comparison."""
+    sources = [x for x in (args.bag, args.kitti, args.euroc) if x]
+    if len(sources) != 1:
+        raise SystemExit("mdr bench --compare: give one input: a BAG, --kitti DIR or --euroc DIR")
+    if args.ablation:
+        raise SystemExit("mdr bench: --compare and --ablation are separate benchmarks")
+    if args.runs < 1:
+        raise SystemExit("mdr bench --compare: --runs must be at least 1")
+    if args.pose_source == "groundtruth":
+        raise SystemExit("mdr bench --compare compares trackers: not with --pose-source groundtruth")
+    if not os.path.exists(sources[0]):
+        raise SystemExit("mdr bench --compare: %s does not exist" % sources[0])
+    # the offline tracker benchmark (pose backends, evo) when it runs: `mdr --help` imports this
+    from ..eval.tracker import (BACKENDS, available_backends, compare_report_markdown,
+                                compare_targets, compare_trackers, live_summary)
+    pose_params = _overrides(args.set)["pose"]   # refuses a bad --set before anything runs
+    kind = "bag" if args.bag else ("kitti" if args.kitti else "euroc")
+    source = os.path.abspath(sources[0])
+    os.makedirs(args.out, exist_ok=True)
+    backends, notes = available_backends(BACKENDS)
+    for n in notes:
+        print("mdr bench --compare: %s" % n, file=sys.stderr)
+    live = kind == "bag" and not args.no_live
+    if live and args.max_frames:
+        notes.append("offline on the first %d frames, live on the whole bag: the live / offline "
+                     "ATE ratios compare different stretches" % args.max_frames)
+    live_runs = OrderedDict((b, []) for b in backends)
+    entries = []
+    code = 0
+    if live:
+        for i in range(1, args.runs + 1):
+            for b in backends:   # alternating: a load spike on a shared machine falls on both
+                d = os.path.join(args.out, "live_%s_%d" % (b, i))
+                log = d + ".log"
+                print("mdr bench --compare: live run %d/%d, %s -> %s" % (i, args.runs, b, d),
+                      file=sys.stderr)
+                bench, err = _live_compare_run(args, b, d, log)
+                live_runs[b].append(bench)
+                entries.append(OrderedDict([("backend", b), ("run", i), ("dir", d),
+                                            ("error", err)]))
+                if err:
+                    print("mdr bench --compare: %s" % err, file=sys.stderr)
+                    notes.append("live run %d of %s: %s" % (i, b, err))
+                    code = 1
+    print("mdr bench --compare: offline, %d run(s) per backend of %s" % (args.runs, source),
+          file=sys.stderr)
+    offline = None
+    bag_options = None
+    if kind == "bag":
+        bag_options = {"topics": bag_topics(args), "image_transport": args.image_transport,
+                       "sync_tolerance": args.sync_tolerance, "rectified": args.rectified}
+    try:
+        offline = compare_trackers(source, kind, backends, args.runs, args.max_frames,
+                                   params=pose_params, bag_options=bag_options,
+                                   log=lambda m: print(m, file=sys.stderr))
+    except Exception as e:   # noqa: BLE001 - the live part is reported all the same
+        notes.append("the offline comparison failed: %s: %s" % (type(e).__name__, e))
+        print("mdr bench --compare: %s" % notes[-1], file=sys.stderr)
+        code = 1
+    summary = live_summary(live_runs, offline) if live else None
+    report = OrderedDict()
+    report["source"] = source
+    report["kind"] = kind
+    report["runs"] = args.runs
+    report["backends"] = backends
+    report["notes"] = notes
+    report["live_skipped"] = None if live else (
+        "--no-live" if kind == "bag" else "a %s folder is not a bag: offline only" % kind)
+    report["live_runs"] = entries
+    report["live"] = summary
+    report["offline"] = offline
+    report["targets"] = compare_targets(summary, offline)
+    with open(os.path.join(args.out, "compare.json"), "w") as f:
+        json.dump(report, f, indent=2, default=str)
+    md = compare_report_markdown(report)
+    with open(os.path.join(args.out, "compare.md"), "w") as f:
+        f.write(md)
+    print(md)
+    return code
 
 
 def run_ablation(args) -> int:

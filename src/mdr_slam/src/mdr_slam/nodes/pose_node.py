@@ -13,7 +13,6 @@ import threading
 import time
 from collections import deque
 
-import cv2
 import diagnostic_updater
 import numpy as np
 import rospy
@@ -32,6 +31,7 @@ from ..conversions import (ConversionError, camera_info_to_model, image_msg_to_m
 from ..geometry import body_twist, inv_T, is_valid_T, parse_transform, rotation_angle
 from ..io.trajectory import write_kitti_poses, write_tum
 from ..pose import System, TrackerConfig, make_system
+from ..pose.factory import limit_library_threads
 from ..pose.map_io import PoseMapError
 from .common import (ClockWatch, StampGuard, Throttled, frame_root, read_config,
                      skip_future_stamp, transform_listener)
@@ -45,8 +45,6 @@ PATH_PERIOD = 0.5           # s: /mdr/path at most this often (its size grows wi
 PATH_MIN_TRANSLATION = 0.05  # m: a pose joins /mdr/path once the camera moved this far ...
 PATH_MIN_ROTATION_DEG = 5.0  # ... or turned this much since the last one
 PIPELINE_FRAMES = True      # make frame N+1 (ORB, stereo) while frame N is being tracked
-BLAS_THREADS = 1            # OpenBLAS's second thread mostly spins on the small BA/PnP products
-CV_THREADS = 1              # left and right ORB already run in two threads
 DEFAULT_CAMERA_FRAME = "camera_left_optical_frame"   # the simulator's; when nothing names one
 BASE_TF_WAIT = 1.0        # s (wall) the first frame waits for tf base <- camera before a fallback ...
 BASE_TF_WAIT_GIVEN = 0.2  # ... and when ~base_to_camera gives one (then tf is only checked)
@@ -710,18 +708,10 @@ class OrbNode(PoseMapServices):
 def main():
     rospy.init_node("pose_node")
     p, tracker = read_config("pose_node", *NODE_CONFIGS["pose"])
-    if BLAS_THREADS > 0:
-        # one BLAS thread: OpenBLAS's second thread mostly spins on the small BA/PnP products
-        # and takes CPU from the depth and fusion nodes on a 2-core machine
-        try:
-            from threadpoolctl import threadpool_limits  # optional package
-            threadpool_limits(BLAS_THREADS, user_api="blas")
-        except Exception as e:   # noqa: BLE001  (threadpoolctl missing: library default)
-            rospy.logwarn("pose_node: BLAS threads not limited: %s", e)
-    if CV_THREADS > 0:
-        # left and right ORB already run in two threads; OpenCV's own pool on top of them costs
-        # CPU (the pyramid's parallel loops: 15.0 -> 11.9 ms CPU per 752x480 image with one)
-        cv2.setNumThreads(CV_THREADS)
+    # one BLAS and one OpenCV thread (mdr_slam.pose.factory says why)
+    why = limit_library_threads()
+    if why:
+        rospy.logwarn("pose_node: BLAS threads not limited: %s", why)
     relay = PoseRelay(p)
     if p.source == "groundtruth":
         def on_gt(msg):

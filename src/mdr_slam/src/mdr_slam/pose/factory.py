@@ -1,15 +1,20 @@
-"""make_system: the pose tracker the ``backend`` parameter names (System or ORBSLAM3System)."""
+"""make_system: the pose tracker the ``backend`` parameter names (System or ORBSLAM3System);
+limit_library_threads: the BLAS and OpenCV thread counts the pose node tracks with."""
 from __future__ import annotations
 
 from typing import Optional
 
+import cv2
 import numpy as np
 
 from .config import TrackerConfig
 from .orbslam3 import ORBSLAM3System, available, import_error
 from .system import System
 
-__all__ = ["make_system"]
+__all__ = ["make_system", "limit_library_threads", "BLAS_THREADS", "CV_THREADS"]
+
+BLAS_THREADS = 1            # OpenBLAS's second thread mostly spins on the small BA/PnP products
+CV_THREADS = 1              # left and right ORB already run in two threads
 
 
 def make_system(camera, config=None, threads: bool = True,
@@ -29,3 +34,24 @@ def make_system(camera, config=None, threads: bool = True,
                               % import_error())
         return ORBSLAM3System(camera, cfg, threads=threads, T_map_cam0=T_map_cam0)
     raise ValueError("pose backend must be mdr or orbslam3, not %r" % backend)
+
+
+def limit_library_threads(blas_threads: int = BLAS_THREADS,
+                          cv_threads: int = CV_THREADS) -> Optional[str]:
+    """Limit this process's BLAS and OpenCV thread pools as the pose node runs (0: leave that
+    library's default). Returns None, or why the BLAS threads were not limited (threadpoolctl is
+    optional); OpenCV's are always set."""
+    why = None
+    if blas_threads > 0:
+        # one BLAS thread: OpenBLAS's second thread mostly spins on the small BA/PnP products
+        # and takes CPU from the depth and fusion nodes on a 2-core machine
+        try:
+            from threadpoolctl import threadpool_limits  # optional package
+            threadpool_limits(int(blas_threads), user_api="blas")
+        except Exception as e:   # noqa: BLE001  (threadpoolctl missing: library default)
+            why = "%s: %s" % (type(e).__name__, e)
+    if cv_threads > 0:
+        # left and right ORB already run in two threads; OpenCV's own pool on top of them costs
+        # CPU (the pyramid's parallel loops: 15.0 -> 11.9 ms CPU per 752x480 image with one)
+        cv2.setNumThreads(int(cv_threads))
+    return why
