@@ -60,6 +60,8 @@ LOOP_ROT_SIGMA_CAP_DEG = 4.0   # ... and never when that sigma exceeds this
 LOOP_REPROJECTION_REFINE = True  # BoW loop transform refined by the keyframe's pixels (OptimizeSim3)
 POSE_GRAPH_WEIGHTS = True      # pose-graph edge information from shared points (OptimizeEssentialGraph: equal)
 GLOBAL_BA_ITERATIONS = 20      # iterations of each global BA (RunGlobalBundleAdjustment: 10)
+GLOBAL_BA_TOL = 1e-3           # a global BA round ends once a step lowers the cost by less than this
+                               # share of it (local BA's BA_TOL; 0: every iteration)
 GLOBAL_BA_MIN_KF_POINTS = 20   # keyframes seeing fewer points follow their parent in the global BA
 GLOBAL_BA_PROCESS = True       # threads: the global BA solved in a child process (out of the GIL) ...
 GLOBAL_BA_NICE = 10            # ... at this nice increment (it yields the CPU to tracking)
@@ -285,7 +287,7 @@ class LoopClosing:
         try:
             res = global_bundle_adjustment(   # the first keyframe holds the map frame (ORB-SLAM2)
                 self.map, iterations=int(GLOBAL_BA_ITERATIONS),
-                min_kf_points=int(GLOBAL_BA_MIN_KF_POINTS),
+                min_kf_points=int(GLOBAL_BA_MIN_KF_POINTS), tol=float(GLOBAL_BA_TOL),
                 abort=self._gba_abort if self.system.threads else None,
                 lock_solve=not self.system.threads, worker=worker)
         finally:

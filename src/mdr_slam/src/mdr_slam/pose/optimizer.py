@@ -17,6 +17,7 @@ from typing import Dict, List, Optional, Tuple
 
 import cv2
 import numpy as np
+import scipy.linalg
 import scipy.sparse as sp
 from scipy.spatial.transform import Rotation
 
@@ -163,6 +164,18 @@ def _robust_lm(Ts, fixed, P, cam_idx, pt_idx, obs, stereo, info, intr, iteration
     rows, cols = rows.ravel(), cols.ravel()
     w_flat = rows * (3 * M) + cols
     cam_ar = np.arange(nv)
+    sum_pt = _block_summer(pt_idx, M)
+    sum_cam = _block_summer(oc, nv)
+    if sparse and nv:
+        # the CSR pattern of W is the same in every iteration: build it once (sorted unique
+        # entries; a point seen twice by one keyframe sums) and fill only the values after
+        w_key, w_inv = np.unique(w_flat, return_inverse=True)
+        w_cols = w_key % (3 * M)
+        w_indptr = np.searchsorted(w_key // (3 * M), np.arange(6 * nv + 1))
+
+        def w_csr(vals):
+            data = np.bincount(w_inv, weights=vals.ravel(), minlength=len(w_key))
+            return sp.csr_matrix((data, w_cols, w_indptr), shape=(6 * nv, 3 * M))
 
     cur = residuals(Ts, P)
     it = 0
@@ -183,15 +196,15 @@ def _robust_lm(Ts, fixed, P, cam_idx, pt_idx, obs, stereo, info, intr, iteration
             Jl = Jl * sq[:, :, None]
         # point blocks (bincount on flattened block indices: much faster than np.add.at)
         JlT = Jl.transpose(0, 2, 1) * w[:, None, None]
-        Hpp = _block_sum(pt_idx, JlT @ Jl, M)
-        bp = _block_sum(pt_idx, (JlT @ e[:, :, None])[:, :, 0], M)
+        Hpp = sum_pt(JlT @ Jl)
+        bp = sum_pt((JlT @ e[:, :, None])[:, :, 0])
         JcT = Jc[ovi].transpose(0, 2, 1) * w[ovi][:, None, None]
-        Hcc = _block_sum(oc, JcT @ Jc[ovi], nv)
-        bc = _block_sum(oc, (JcT @ e[ovi][:, :, None])[:, :, 0], nv)
+        Hcc = sum_cam(JcT @ Jc[ovi])
+        bc = sum_cam((JcT @ e[ovi][:, :, None])[:, :, 0])
         Wb = JcT @ Jl[ovi]                                             # (n, 6, 3)
         if nv:
             if sparse:
-                Wd = sp.csr_matrix((Wb.ravel(), (rows, cols)), shape=(6 * nv, 3 * M))
+                Wd = w_csr(Wb)
             else:
                 Wd = np.zeros((6 * nv, 3 * M))
                 Wd.ravel()[w_flat] = Wb.ravel()
@@ -203,8 +216,7 @@ def _robust_lm(Ts, fixed, P, cam_idx, pt_idx, obs, stereo, info, intr, iteration
                 Hcc_d = Hcc + (lam * np.einsum("nii->ni", Hcc) + 1e-9)[:, :, None] * np.eye(6)
                 # Schur complement S = Hcc - W V^-1 W^T (V block diagonal: per-point 3x3)
                 if sparse:
-                    WVd = sp.csr_matrix(((Wb @ Vinv[pt_ov]).ravel(), (rows, cols)),
-                                        shape=(6 * nv, 3 * M))
+                    WVd = w_csr(Wb @ Vinv[pt_ov])
                     S = -(WVd @ Wd.T).toarray()
                 else:
                     WVd = np.zeros((6 * nv, 3 * M))
@@ -214,7 +226,7 @@ def _robust_lm(Ts, fixed, P, cam_idx, pt_idx, obs, stereo, info, intr, iteration
                 S4[cam_ar, :, cam_ar, :] += Hcc_d
                 rhs = -bc.ravel() + WVd @ bp.ravel()
                 try:
-                    dc = np.linalg.solve(S, rhs).reshape(nv, 6)
+                    dc = _solve_spd(S, rhs).reshape(nv, 6)
                 except np.linalg.LinAlgError:
                     lam *= 10
                     continue
@@ -258,13 +270,28 @@ def texture_row_weights(obs_list) -> Optional[np.ndarray]:
     return np.column_stack([w[:, 0], w[:, 1], w[:, 0]])
 
 
-def _block_sum(idx: np.ndarray, vals: np.ndarray, n: int) -> np.ndarray:
-    """out[k] = sum of vals[i] with idx[i] == k, for blocks vals (m, ...) -> (n, ...)."""
-    shape = vals.shape[1:]
-    size = int(np.prod(shape)) if shape else 1
-    flat = (idx[:, None] * size + np.arange(size)[None, :]).ravel()
-    out = np.bincount(flat, weights=vals.reshape(-1), minlength=n * size)
-    return out.reshape((n,) + shape)
+def _solve_spd(S: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Solve the damped Schur system, symmetric positive definite: Cholesky (about half the
+    cost of LU on the global BA's 1000-dimensional systems), LU where rounding makes it fail."""
+    try:
+        return scipy.linalg.cho_solve(scipy.linalg.cho_factor(S, check_finite=False), rhs,
+                                      check_finite=False)
+    except np.linalg.LinAlgError:
+        return np.linalg.solve(S, rhs)
+
+
+def _block_summer(idx: np.ndarray, n: int):
+    """``f(vals)``: out[k] = sum of vals[i] with idx[i] == k, for blocks vals (m, ...) -> (n, ...).
+    One sparse one-hot (n x m) product per call, its pattern built once for the solver's fixed
+    structure: 5-8x faster than a bincount over flattened block indices."""
+    m = len(idx)
+    A = sp.csr_matrix((np.ones(m), (np.asarray(idx, dtype=np.int64), np.arange(m))), shape=(n, m))
+
+    def block_sum(vals: np.ndarray) -> np.ndarray:
+        if m == 0:
+            return np.zeros((n,) + vals.shape[1:])
+        return (A @ vals.reshape(m, -1)).reshape((n,) + vals.shape[1:])
+    return block_sum
 
 
 def _inv3(A: np.ndarray) -> np.ndarray:
@@ -579,14 +606,14 @@ class Optimizer:
 def bundle_adjust_sparse(Ts: np.ndarray, fixed: np.ndarray, P: np.ndarray, cam_idx: np.ndarray,
                          pt_idx: np.ndarray, obs: np.ndarray, stereo: np.ndarray,
                          info: np.ndarray, intr, iterations: int = 10, lm_lambda: float = 1e-3,
-                         abort=None, row_w: Optional[np.ndarray] = None):
+                         abort=None, row_w: Optional[np.ndarray] = None, tol: float = 0.0):
     """:func:`bundle_adjust` for many cameras (global BA): the same robust LM with the Schur
     complement and the same outlier rounds, but the (6 C x 3 M) camera-point block matrix W is a
     scipy.sparse matrix, so memory grows with the observations instead of cameras x points (the
     dense W of the local solver would be gigabytes for a whole map). Returns (Ts, P, inlier mask
-    of the observations after the last outlier round)."""
+    of the observations after the last outlier round). ``tol``: as :func:`bundle_adjust`'s."""
     Ts, P, active, (e, Pc, _) = _robust_lm(Ts, fixed, P, cam_idx, pt_idx, obs, stereo, info,
-                                           intr, iterations, lm_lambda, abort, 0.0, sparse=True,
+                                           intr, iterations, lm_lambda, abort, tol, sparse=True,
                                            row_w=row_w)
     chi2_th = np.where(stereo, CHI2_STEREO, CHI2_MONO)
     _, chi2 = _huber_cost(e, info, np.sqrt(chi2_th), active)
@@ -597,7 +624,7 @@ def bundle_adjust_sparse(Ts: np.ndarray, fixed: np.ndarray, P: np.ndarray, cam_i
 def global_bundle_adjustment(map_, iterations: int = 10, fixed_id: Optional[int] = None,
                              abort=None, lock_solve: bool = True,
                              min_observers: int = 2, min_kf_points: int = 0,
-                             worker=None) -> Dict[str, object]:
+                             worker=None, tol: float = 0.0) -> Dict[str, object]:
     """ORB-SLAM2 RunGlobalBundleAdjustment: every live keyframe and map point optimised together
     (the first keyframe, or ``fixed_id``, held), then the result written back. Keyframes and
     points created while the solver ran (``lock_solve=False``: the map lock is released during
@@ -674,9 +701,10 @@ def global_bundle_adjustment(map_, iterations: int = 10, fixed_id: Optional[int]
     def solve():
         args = (Ts, fixed, P0, cam_idx, pt_idx, obs, stereo, info, intr)
         if worker is not None:
-            return worker.run(args, {"iterations": iterations, "row_w": row_w}, abort=abort,
-                              solver="bundle_adjust_sparse")
-        return bundle_adjust_sparse(*args, iterations=iterations, abort=abort, row_w=row_w)
+            return worker.run(args, {"iterations": iterations, "row_w": row_w, "tol": tol},
+                              abort=abort, solver="bundle_adjust_sparse")
+        return bundle_adjust_sparse(*args, iterations=iterations, abort=abort, row_w=row_w,
+                                    tol=tol)
     if lock_solve:
         with map_.lock:
             Ts_new, P_new, inlier = solve()
