@@ -358,3 +358,40 @@ def test_feature_grid_pairs_equal_brute_force_radius_search():
     np.testing.assert_array_equal(j[b1], j[p][b2])
     np.testing.assert_array_equal(s1, s2)
     np.testing.assert_array_equal(o1, o2)
+
+
+def test_threaded_system_makes_frames_in_a_worker_process_identical_to_in_process():
+    """System(threads=True) makes its frames' features in a child process (out of the lock that
+    tracking and the mapping threads share): the same keypoints, descriptors and stereo depths
+    as in-process, the parent spends little CPU on them, a killed child is replaced, and
+    shutdown leaves no process behind."""
+    import os
+    import signal
+    from mdr_slam.pose import System
+    cam = StereoCamera.from_rectified(480, 320, 300.0, 300.0, 240.0, 160.0, 0.12)
+    room = BoxRoom((3.0, 1.5, 3.0), tex_size=768, seed=3)
+    pairs = [room.render_stereo(T, cam) for T in orbit_trajectory(3, radius=1.0, arc=0.2)]
+    live = System(cam, threads=True)
+    offline = System(cam, threads=False)
+    try:
+        assert live.frame_worker is not None and offline.frame_worker is None
+        for i, (left, right) in enumerate(pairs):
+            if i == 2:   # a dead child is restarted on the next frame
+                pid = live.frame_worker._proc.pid
+                os.kill(pid, signal.SIGKILL)
+                live.frame_worker._proc.wait()
+            a = live.make_frame(0.05 * i, left, right)
+            b = offline.make_frame(0.05 * i, left, right)
+            assert a.N == b.N > 200 and a.n_primary == b.n_primary
+            for k in ("uv", "octave", "angle", "desc", "ur", "depth"):
+                np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
+            assert not live.frame_worker.failed
+            assert a.build_cpu_ms < 0.5 * b.build_cpu_ms   # the work was done in the child
+        assert live.frame_worker._proc.pid != pid
+        res = live.track(0.0, frame=live.make_frame(0.0, *pairs[0]))
+        assert res.state in ("OK", "NOT_INITIALIZED")
+    finally:
+        proc = live.frame_worker._proc
+        live.shutdown()
+        offline.shutdown()
+    assert proc.poll() is not None and live.frame_worker is None

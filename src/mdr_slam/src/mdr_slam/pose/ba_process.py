@@ -1,6 +1,8 @@
 """BAWorker: the parent's side of the bundle-adjustment child process (``python -m
 mdr_slam.pose.ba_worker``, which describes the pipe protocol): starts the child, sends it a
-problem, reads the answer, and solves in the calling thread when the child cannot run.
+problem, reads the answer, and solves in the calling thread when the child cannot run. The same
+child makes stereo frames' features for System (``stereo_features``: a pure function of the two
+images, so only the images and the arrays cross the pipe).
 """
 from __future__ import annotations
 
@@ -13,12 +15,14 @@ import subprocess
 import sys
 import threading
 
+from .frame import stereo_features_job
 from .optimizer import bundle_adjust, bundle_adjust_sparse
 
 __all__ = ["BAWorker", "BA_SOLVERS"]
 
 # what a BAWorker child can solve (ba_worker.py looks the name up here too)
-BA_SOLVERS = {"bundle_adjust": bundle_adjust, "bundle_adjust_sparse": bundle_adjust_sparse}
+BA_SOLVERS = {"bundle_adjust": bundle_adjust, "bundle_adjust_sparse": bundle_adjust_sparse,
+              "stereo_features": stereo_features_job}
 
 
 class BAWorker:

@@ -2,8 +2,9 @@
 side: ba_process.BAWorker).
 
 Protocol on its stdin/stdout: the parent writes pickled ``(name, args, kwargs)``, name a key of
-``ba_process.BA_SOLVERS`` (``bundle_adjust``: local BA, ``bundle_adjust_sparse``: global BA); the
-child answers the pickled result or an ``Exception``. SIGUSR1 asks the solve in progress to stop
+``ba_process.BA_SOLVERS`` (``bundle_adjust``: local BA, ``bundle_adjust_sparse``: global BA,
+``stereo_features``: a stereo frame's features); the child answers the pickled result or an
+``Exception``. SIGUSR1 asks the solve in progress to stop
 after the current iteration (ORB-SLAM2's abort when a new keyframe arrives). It is a plain
 ``python -m`` process, not multiprocessing, so the parent's main script is never re-imported in
 the child. EOF on stdin (the parent is gone) ends it.
@@ -24,7 +25,10 @@ def main() -> int:
     os.dup2(2, 1)                      # stray prints/warnings go to stderr, not into the protocol
     inp = os.fdopen(os.dup(0), "rb")
     # imported after the redirect: whatever its import prints stays out of the protocol
+    import cv2
     from mdr_slam.pose.ba_process import BA_SOLVERS
+    from mdr_slam.pose.factory import CV_THREADS
+    cv2.setNumThreads(CV_THREADS)      # as the pose node: frame jobs run two ORB threads already
     flag = {"abort": False}
 
     def on_abort(signum, frame):

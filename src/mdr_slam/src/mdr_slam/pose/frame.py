@@ -21,7 +21,7 @@ from ..geometry import inv_T, transform_points
 from .optimizer import normalize_pose
 from .orb import TH_HIGH, TH_LOW, ORBextractor, expand_ranges, hamming
 
-__all__ = ["Frame", "FeatureGrid", "compute_stereo_matches"]
+__all__ = ["Frame", "FeatureGrid", "compute_stereo_matches", "stereo_features", "stereo_features_job"]
 
 _POOL = None
 
@@ -182,6 +182,44 @@ def gradient_energy(image: np.ndarray, uv: np.ndarray, half: int = 3) -> np.ndar
     return np.stack([np.mean(gx * gx, axis=(1, 2)), np.mean(gy * gy, axis=(1, 2))], axis=1)
 
 
+def stereo_features(left: np.ndarray, right: np.ndarray, extractor: ORBextractor,
+                    extractor_right: Optional[ORBextractor], fx: float, baseline: float,
+                    doffs: float = 0.0) -> tuple:
+    """What a Frame is made of: ORB on both images and the stereo matches,
+    ``(uv, octave, angle, desc, ur, depth, n_primary)`` (``n_primary``: the left image's corners
+    at the first FAST threshold, Tracking's low-texture test). With a second extractor the right
+    image is extracted in a worker thread while this one does the left (cv2 releases the GIL
+    inside detect/compute; two cv2.ORB objects: they are not re-entrant)."""
+    if extractor_right is not None and extractor_right is not extractor:
+        fut = _pool().submit(extractor_right, right)
+        uv, octave, angle, desc = extractor(left)
+        uv_r, oct_r, _, desc_r = fut.result()
+    else:
+        uv, octave, angle, desc = extractor(left)
+        n_primary = getattr(extractor, "n_primary", len(uv))
+        uv_r, oct_r, _, desc_r = extractor(right)
+        extractor.n_primary = n_primary   # the left image's, as with two extractors
+    ur, depth = compute_stereo_matches(left, right, uv, octave, desc, uv_r, oct_r, desc_r,
+                                       extractor.scale, fx, baseline, doffs=doffs)
+    return uv, octave, angle, desc, ur, depth, int(getattr(extractor, "n_primary", len(uv)))
+
+
+_JOB_EXTRACTORS: dict = {}
+
+
+def stereo_features_job(orb_params: tuple, left: np.ndarray, right: np.ndarray, fx: float,
+                        baseline: float, doffs: float = 0.0, abort=None) -> tuple:
+    """:func:`stereo_features` with extractors made from ``orb_params`` (ORBextractor's
+    nfeatures, scale_factor, nlevels, fast_threshold, min_fast_threshold) and kept for the next
+    call: the frame job of a worker process (``ba_process.BAWorker``). ``abort`` is unused."""
+    ex = _JOB_EXTRACTORS.get(tuple(orb_params))
+    if ex is None:
+        n, sf, nl, fast, fast_min = orb_params
+        ex = tuple(ORBextractor(n, sf, nl, fast, min_fast_threshold=fast_min) for _ in range(2))
+        _JOB_EXTRACTORS[tuple(orb_params)] = ex
+    return stereo_features(left, right, ex[0], ex[1], fx, baseline, doffs)
+
+
 class FeatureGrid:
     """Keypoints bucketed in square cells (ORB-SLAM2's Frame::mGrid and GetFeaturesInArea),
     answering every (projection, keypoint) pair within a per-projection radius at once.
@@ -255,7 +293,9 @@ class Frame:
 
     def __init__(self, stamp: float, left: np.ndarray, right: np.ndarray, camera,
                  extractor: ORBextractor, extractor_right: Optional[ORBextractor] = None,
-                 th_depth_factor: float = 35.0):
+                 th_depth_factor: float = 35.0, features: Optional[tuple] = None):
+        """``features``: the pair's :func:`stereo_features` when made elsewhere (a worker
+        process); else they are computed here with the extractors."""
         self.id = Frame._next_id
         Frame._next_id += 1
         self.stamp = float(stamp)
@@ -270,18 +310,10 @@ class Frame:
         self.inv_level_sigma2 = extractor.inv_level_sigma2
         self.log_scale = np.log(extractor.scale_factor)
         self.nlevels = extractor.nlevels
-        if extractor_right is not None and extractor_right is not extractor:
-            # cv2 releases the GIL inside detect/compute: the right image is extracted in a
-            # worker thread while this one does the left (two cv2.ORB objects: not re-entrant)
-            fut = _pool().submit(extractor_right, right)
-            self.uv, self.octave, self.angle, self.desc = extractor(left)
-            uv_r, oct_r, _, desc_r = fut.result()
-        else:
-            self.uv, self.octave, self.angle, self.desc = extractor(left)
-            uv_r, oct_r, _, desc_r = extractor(right)
-        self.ur, self.depth = compute_stereo_matches(
-            left, right, self.uv, self.octave, self.desc, uv_r, oct_r, desc_r, self.scale,
-            self.fx, self.baseline, doffs=self.doffs)
+        if features is None:
+            features = stereo_features(left, right, extractor, extractor_right, self.fx,
+                                       self.baseline, self.doffs)
+        self.uv, self.octave, self.angle, self.desc, self.ur, self.depth, self.n_primary = features
         self.N = len(self.uv)
         # the images, for the optical-flow fallback (only the last frame is kept by Tracking)
         self.image, self.right_image = left, right

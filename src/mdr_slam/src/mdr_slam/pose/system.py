@@ -20,6 +20,7 @@ import numpy as np
 
 from ..geometry import interpolate_poses, inv_T
 from ..io import Trajectory
+from .ba_process import BAWorker
 from .config import TrackerConfig
 from .frame import Frame
 from .local_mapping import LocalMapping
@@ -42,6 +43,9 @@ TRAJECTORY_BLEND = True        # frames between two keyframes follow both (false
 YIELD_MAX_MS = 60.0            # threads: mapping waits at most this long for a frame's tracking, so its
                                # share of the GIL does not slow tracking (0: off)
 BACKPRESSURE_INLIERS = 80      # threads: tracking waits for LocalMapping when it gets this weak
+FRAME_PROCESS = True           # threads: frames (ORB on both images, stereo matching) are made in a
+                               # child process, out of the interpreter lock that tracking and the
+                               # mapping threads share (ORB-SLAM2: in the tracking thread)
 
 _REASONS = {"local_ba": 1, "loop_closure": 2}
 
@@ -77,6 +81,12 @@ class System:
         # frame's wall time doubles (a live node then skips frames)
         self.tracking_idle = threading.Event()
         self.tracking_idle.set()
+        self.frame_worker = None   # ba_process.BAWorker making the frames (threads, FRAME_PROCESS)
+        if self.threads and FRAME_PROCESS:
+            self.frame_worker = BAWorker()
+            self.frame_worker.prewarm()
+        self._orb_params = (self.cfg.n_features, self.cfg.scale_factor, self.cfg.n_levels,
+                            self.cfg.fast_threshold, self.cfg.min_fast_threshold)
         self._build()
 
     def _build(self) -> None:
@@ -116,15 +126,22 @@ class System:
 
         It reads no map, so a caller may build the next frame while the previous one is being
         tracked (``track(..., frame=...)``): the two stages then overlap on two cores. Call it from
-        one thread at a time (the ORB extractors are not re-entrant)."""
+        one thread at a time (the ORB extractors are not re-entrant). With ``threads`` the
+        features are computed in a child process (``FRAME_PROCESS``; in this thread when it
+        cannot run), so ``build_cpu_ms`` then counts only this process's share."""
         t0 = time.perf_counter()
         c0 = time.thread_time()
         if left_rect.ndim == 3:
             left_rect = cv2.cvtColor(left_rect, cv2.COLOR_BGR2GRAY)
             right_rect = cv2.cvtColor(right_rect, cv2.COLOR_BGR2GRAY)
+        features = None
+        if self.frame_worker is not None and not self.frame_worker.failed:
+            cam = self.camera
+            features = self.frame_worker.run(
+                (self._orb_params, left_rect, right_rect, cam.fx, cam.baseline,
+                 float(getattr(cam, "doffs", 0.0))), {}, solver="stereo_features")
         frame = Frame(stamp, left_rect, right_rect, self.camera, self.extractor,
-                      self.extractor_right, th_depth_factor=self.cfg.th_depth)
-        frame.n_primary = getattr(self.extractor, "n_primary", frame.N)   # low-texture test
+                      self.extractor_right, th_depth_factor=self.cfg.th_depth, features=features)
         frame.texture_tau = float(TEXTURE_TAU)
         frame.build_ms = 1000.0 * (time.perf_counter() - t0)
         frame.build_cpu_ms = 1000.0 * (time.thread_time() - c0)   # the right image's thread excluded
@@ -301,6 +318,9 @@ class System:
 
     def shutdown(self) -> None:
         self._stop_threads()
+        if self.frame_worker is not None:
+            self.frame_worker.close()
+            self.frame_worker = None
 
     @property
     def state(self) -> str:
