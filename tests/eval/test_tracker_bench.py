@@ -201,3 +201,16 @@ def test_targets_without_live_runs_are_not_measured():
                                   "live": None, "live_skipped": "--no-live", "targets": t})
     assert "Note: pyorbslam3 is missing." in md and "Not run (--no-live)." in md
     assert _line(md, "map integrations").endswith("not measured (target >= 5 Hz): -")
+
+
+def test_cpu_per_frame_counts_the_worker_processes():
+    """The built-in tracker makes its live frames in a child process: the CPU a run reports
+    includes the children it has waited for, or the threaded tracker would look cheap."""
+    import subprocess
+    import sys
+    from mdr_slam.eval.tracker import _cpu_seconds
+    c0 = _cpu_seconds()
+    subprocess.run([sys.executable, "-c",
+                    "import time\nt = time.process_time()\nwhile time.process_time() - t < 0.3: pass"],
+                   check=True)
+    assert _cpu_seconds() - c0 >= 0.25
