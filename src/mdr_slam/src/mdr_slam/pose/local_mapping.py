@@ -230,15 +230,17 @@ class LocalMapping:
             F12 = Kinv.T @ _skew(t12) @ R12 @ Kinv     # x1^T F12 x2 = 0
             x1 = np.column_stack([kf.uv[f1], np.ones(len(f1))])
             x2 = np.column_stack([kf2.uv[f2], np.ones(len(f2))])
-            lines = x1 @ F12                                   # epipolar lines in image 2
+            # float32: pixel distances need no more, and the (n1, n2) product below is this
+            # step's cost (KITTI: ~1000 x 1000 per neighbour; a quarter faster than float64)
+            lines = (x1 @ F12).astype(np.float32)              # epipolar lines in image 2
             sig2 = 3.84 * kf2.scale[kf2.octave[f2]] ** 2
             # point-to-line distances |l . x2| / |l_xy| of all pairs, in place on the one
             # (n1, n2) product (no squared or broadcast temporaries: ~2.5x faster)
-            dist_l = lines @ x2.T                          # (n1, n2)
+            dist_l = lines @ x2.T.astype(np.float32)       # (n1, n2)
             with np.errstate(divide="ignore"):
                 dist_l *= (1.0 / np.sqrt(lines[:, 0] ** 2 + lines[:, 1] ** 2))[:, None]
             np.abs(dist_l, out=dist_l)
-            pi, pj = np.nonzero(dist_l < np.sqrt(sig2)[None, :])
+            pi, pj = np.nonzero(dist_l < np.sqrt(sig2).astype(np.float32)[None, :])
             # Hamming only on the pairs that satisfy the epipolar constraint (a few %)
             if len(pi) == 0:
                 continue
