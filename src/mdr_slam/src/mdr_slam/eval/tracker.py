@@ -4,7 +4,7 @@ What ``mdr bench --compare`` holds the built-in tracker to, on the same input in
 
 Offline (:func:`compare_trackers`): each backend over the same frames, read and rectified first
 so the clock covers the tracker only, with the BLAS and OpenCV thread limits of the pose node
-(:func:`mdr_slam.pose.factory.limit_library_threads`). Per run:
+(:func:`mdr_slam.pose.factory.library_threads`). Per run:
 
 - CPU per frame of the whole process while it tracks, every thread and child process included
   (ORB extraction, tracking, LocalMapping, LoopClosing, the built-in tracker's worker
@@ -32,7 +32,11 @@ same backend's offline ATE, and the built-in tracker's targets (:data:`TARGETS`)
 """
 from __future__ import annotations
 
+import os
+import pickle
 import resource
+import subprocess
+import sys
 import time
 from collections import OrderedDict
 from typing import Dict, List, Optional, Sequence, Tuple
@@ -42,7 +46,7 @@ import numpy as np
 from ..io import Trajectory
 from ..pipeline import frames_from_bag, frames_from_dataset, load_params
 from ..pose import TrackerConfig, make_system
-from ..pose.factory import limit_library_threads
+from ..pose.factory import library_threads
 from ..pose.orbslam3 import available as orbslam3_available, import_error as orbslam3_error
 from .trajectory import ate
 
@@ -164,6 +168,41 @@ def run_tracker(camera, stamps, frames, gt=None, backend: str = "mdr",
     return out
 
 
+def run_tracker_in_child(source: str, kind: str, max_frames: Optional[int],
+                         bag_options: Optional[dict], backend: str, params: Optional[dict],
+                         threads: bool) -> Dict[str, object]:
+    """:func:`run_tracker` in a fresh Python process that reads the sequence itself, with the
+    pose node's thread limits. ORB-SLAM3 keeps process-wide state from its first camera (its
+    Frame's image bounds and grid are computed once, ids are static counters), so a second
+    ORB-SLAM3 with another image size in the same process loses track; one process per run also
+    leaves nothing behind in the caller. A plain ``python -c`` child, not multiprocessing, so the
+    caller's main script is never re-imported."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([p for p in sys.path if p] + [env.get("PYTHONPATH", "")])
+    job = pickle.dumps((source, kind, max_frames, bag_options, backend, params, threads))
+    proc = subprocess.run([sys.executable, "-c",
+                           "from mdr_slam.eval.tracker import _child_main; _child_main()"],
+                          input=job, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+    if proc.returncode != 0:
+        raise RuntimeError("%s tracker run failed (exit %d): %s" % (
+            backend, proc.returncode, proc.stderr.decode(errors="replace")[-2000:]))
+    return pickle.loads(proc.stdout)
+
+
+def _child_main() -> None:
+    """The child of :func:`run_tracker_in_child`: the job on stdin, the result on stdout (the
+    trackers' own prints go to stderr)."""
+    out = os.fdopen(os.dup(1), "wb")
+    os.dup2(2, 1)
+    source, kind, max_frames, bag_options, backend, params, threads = pickle.load(sys.stdin.buffer)
+    with library_threads():
+        camera, stamps, frames, gt, preset = load_sequence(source, kind, max_frames, bag_options)
+        r = run_tracker(camera, stamps, frames, gt, backend=backend, params=params,
+                        preset=preset, threads=threads)
+    pickle.dump(r, out, protocol=pickle.HIGHEST_PROTOCOL)
+    out.flush()
+
+
 def _spread(values: Sequence[Optional[float]]) -> Dict[str, Optional[float]]:
     v = np.array([x for x in values if x is not None], float)
     if len(v) == 0:
@@ -182,17 +221,24 @@ def compare_trackers(source: str, kind: str = "bag", backends: Sequence[str] = B
     """Every backend ``runs`` times on the same frames, alternating (a load spike on a shared
     machine then falls on both); per backend each figure's median, min and max over the runs,
     and the ratios of the built-in tracker's medians to ORB-SLAM3's. A backend that cannot run
-    (``orbslam3`` without pyorbslam3) is left out and ``notes`` says why. This process's BLAS and
-    OpenCV threads are limited as the pose node limits them (and stay so), so the CPU per frame
-    is the node's. ``params``: pose.yaml overrides; ``bag_options``: see :func:`load_sequence`."""
+    (``orbslam3`` without pyorbslam3) is left out and ``notes`` says why. While it runs, this
+    process's BLAS and OpenCV threads are limited as the pose node limits them, so the CPU per
+    frame is the node's; the previous limits are restored after. Each ORB-SLAM3 run is a process
+    of its own (:func:`run_tracker_in_child`). ``params``: pose.yaml overrides; ``bag_options``:
+    see :func:`load_sequence`."""
     if int(runs) < 1:
         raise ValueError("runs must be at least 1, not %r" % (runs,))
     backends, notes = available_backends(backends)
     if not backends:
         raise ValueError("no pose backend to run")
-    why = limit_library_threads()
-    if why:
-        notes.append("BLAS threads not limited (%s): the pose node would warn the same" % why)
+    with library_threads() as why:
+        if why:
+            notes.append("BLAS threads not limited (%s): the pose node would warn the same" % why)
+        return _compare(source, kind, backends, notes, runs, max_frames, params, log,
+                        bag_options)
+
+
+def _compare(source, kind, backends, notes, runs, max_frames, params, log, bag_options):
     camera, stamps, frames, gt, preset = load_sequence(source, kind, max_frames, bag_options)
     params = dict(params or {})
     params.pop("backend", None)   # each run names its own
@@ -204,8 +250,12 @@ def compare_trackers(source: str, kind: str = "bag", backends: Sequence[str] = B
     per: Dict[str, List[dict]] = {name: [] for name, _, _ in modes}
     for i in range(int(runs)):
         for name, b, threads in modes:
-            r = run_tracker(camera, stamps, frames, gt, backend=b, params=params, preset=preset,
-                            threads=threads)
+            if b == "orbslam3":   # a process of its own per run (see run_tracker_in_child)
+                r = run_tracker_in_child(source, kind, max_frames, bag_options, b, params,
+                                         threads)
+            else:
+                r = run_tracker(camera, stamps, frames, gt, backend=b, params=params,
+                                preset=preset, threads=threads)
             per[name].append(r)
             if log is not None:
                 log("  %s run %d/%d: CPU %.1f ms/frame, ATE published %s, final %s, tracked %d/%d"
