@@ -6,8 +6,8 @@
         [--correlation]   # frame-to-frame correlation of ELAS's disparity error per surface label
 
 For each scene: render ``--frames`` stereo pairs along the scene's ground-truth trajectory, run
-ELAS once per pair (cached in ``--cache``, so sweeps re-run only the filter), then run the filter
-(ground-truth poses) and the ELAS-only baseline and compare every published point with the true
+ELAS and the weak-texture matcher once per pair (cached in ``--cache``, so sweeps re-run only
+the filter), then run the filter (ground-truth poses) and the ELAS-only baseline and compare every published point with the true
 depth at its pixel in the current frame. Reported per surface label (low_texture, textured,
 specular) and overall:
 
@@ -42,16 +42,20 @@ def _parse_value(v: str):
 
 def measurements(scene_name: str, frames: int, rate: float, params, cache: str, scale: float,
                  duration: float = 30.0):
-    """Per frame: (T, disparity, grey, gt_depth, surface); ELAS results cached on disk."""
+    """Per frame: (T, disparity, grey, gt_depth, surface, weak-texture disparity); the matchers'
+    results cached on disk."""
     from mdr_slam.depth import StereoDepth
     from mdr_slam.sim import Simulator, make_scene, make_trajectory, sim_camera
     cam = sim_camera(scale=scale)
     sd = StereoDepth(cam, params)
     import hashlib
-    elas_key = hashlib.sha1(repr(sorted(sd.matcher.params.items())).encode()).hexdigest()[:10]
+    from mdr_slam.depth.weak_texture import BLOCK, WeakTextureMatcher
+    weak_matcher = WeakTextureMatcher(sd.matcher.cfg.disp_max)
+    elas_key = hashlib.sha1((repr(sorted(sd.matcher.params.items())) + "weak%d" % BLOCK).encode()
+                            ).hexdigest()[:10]
     key = "%s_n%d_r%g_d%g_s%g_elas%s" % (scene_name, frames, rate, duration, scale, elas_key)
     path = os.path.join(cache, key + ".npz")
-    names = ("T", "disp", "grey", "gt", "surface")
+    names = ("T", "disp", "grey", "gt", "surface", "weak")
     if os.path.exists(path):
         with np.load(path) as z:
             d = {k: z[k] for k in names}     # each z[k] decompresses the whole array: once
@@ -64,8 +68,9 @@ def measurements(scene_name: str, frames: int, rate: float, params, cache: str, 
     for i, T in enumerate(Ts[:frames]):
         f = sim.render(T, index=i)
         disp = sd.matcher.compute(f["left"], f["right"])
-        out.append((T, disp, f["left"], f["depth"], f["surface"]))
-    print("  %s: rendered + ELAS %d frames in %.0f s" % (scene_name, len(out), time.time() - t0),
+        weak = weak_matcher.compute(f["left"], f["right"])
+        out.append((T, disp, f["left"], f["depth"], f["surface"], weak))
+    print("  %s: rendered + matched %d frames in %.0f s" % (scene_name, len(out), time.time() - t0),
           flush=True)
     os.makedirs(cache, exist_ok=True)
     np.savez(path, **{k: np.stack([o[j] for o in out]) for j, k in enumerate(names)})
@@ -76,7 +81,8 @@ def evaluate(cam, frames, params, rate: float) -> dict:
     """Run the filter (or ELAS-only) over the frames; error/density per label."""
     from mdr_slam.depth import DepthFilter, StereoDepth
     f = DepthFilter(cam, params)
-    measure = StereoDepth(cam, params).measurement
+    sd = StereoDepth(cam, params)
+    use_weak = sd.weak_matcher is not None
     w, h = cam.size
     s = f.cfg.stride
     errs = {k: [] for k in LABEL_NAMES}
@@ -84,8 +90,8 @@ def evaluate(cam, frames, params, rate: float) -> dict:
     ngrid = {k: 0 for k in LABEL_NAMES}
     t_filter = []
     kfs = set()
-    for i, (T, disp, grey, gt, surf) in enumerate(frames):
-        Z, var = measure(disp, grey)
+    for i, (T, disp, grey, gt, surf, weak) in enumerate(frames):
+        Z, var = sd.measurement(disp, grey, weak if use_weak else None)
         t0 = time.perf_counter()
         out = f.process(i / rate, T, Z, var, grey)
         t_filter.append(time.perf_counter() - t0)
@@ -135,7 +141,7 @@ def error_correlation(cam, frames, label: int = 1, lags=(1, 2, 5, 10, 20, 40), s
     for i0 in starts:
         if i0 >= len(frames):
             continue
-        _, disp, _, gt, surf = frames[i0]
+        _, disp, _, gt, surf = frames[i0][:5]
         zi = gt[::stride, ::stride]
         m = (zi > 0) & (surf[::stride, ::stride] == label) & (disp[::stride, ::stride] > 0)
         ei = (disp[::stride, ::stride] - fB / np.where(zi > 0, zi, 1.0))[m]
@@ -145,7 +151,7 @@ def error_correlation(cam, frames, label: int = 1, lags=(1, 2, 5, 10, 20, 40), s
             j = i0 + k
             if j >= len(frames):
                 break
-            _, dj, _, gj, _ = frames[j]
+            _, dj, _, gj, _ = frames[j][:5]
             Tj = np.linalg.inv(T[j])
             Pc = Pw @ Tj[:3, :3].T + Tj[:3, 3]
             with np.errstate(divide="ignore", invalid="ignore"):

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Map growth on a repeated room (#8 "memory bounded by the mapped surface"), offline.
+"""Map growth on a repeated room ("memory bounded by the mapped surface"), offline.
 
 The depth node's clouds of the sample bag (ground-truth poses) are computed once and cached, then
 integrated into one ``VoxelMap`` lap after lap, as a looped bag would feed the fusion node. Lap 1

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""How full is a map's lattice? Map points against the true surface's voxels (#8 "memory bounded
+"""How full is a map's lattice? Map points against the true surface's voxels ("memory bounded
 by the mapped surface").
 
 Per map: points within ``--near`` of the ground-truth surface (``gt_map.ply`` of a simulated

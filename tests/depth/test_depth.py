@@ -454,10 +454,10 @@ def test_elas_matcher_does_not_keep_its_inputs():
 
 
 def test_error_correlation_tells_noise_from_a_surface_bias():
-    """scripts/eval_depth_sim.py --correlation (the #5 completeness diagnosis): independent
-    per-frame disparity noise has ~0 frame-to-frame correlation and the two-frame mean shrinks
-    by ~sqrt(2); an error attached to the surface (what ELAS's interpolation does on weak
-    texture) correlates ~1 across frames and no temporal average removes it."""
+    """scripts/eval_depth_sim.py --correlation: independent per-frame disparity noise has ~0
+    frame-to-frame correlation and the two-frame mean shrinks by ~sqrt(2); an error attached to
+    the surface (what ELAS's interpolation does on weak texture) correlates ~1 across frames and
+    no temporal average removes it."""
     import os
     import sys
     from conftest import ROOT

@@ -31,11 +31,16 @@ class ElasConfig(Config):
 
 @dataclass
 class DepthConfig(Config):
-    """StereoDepth's parameters: measurement model, keyframe Kalman filter, planar densification
-    and ``elas`` (see depth.stereo_depth, depth.filter, depth.densify)."""
+    """StereoDepth's parameters: weak-texture matching, measurement model, keyframe Kalman filter,
+    planar densification and ``elas`` (see depth.stereo_depth, depth.filter, depth.densify)."""
     # --- measurement model: Z = f*B/d, sigma_Z = Z^2 * sigma_d / (f*B)
     sigma_d: float = 0.5            # px, disparity noise of an ELAS match on texture
     sigma_d_texture: float = 1.0    # k: adds (k / local x-gradient)^2 px^2 on low texture; 0: constant sigma_d
+    # --- weak texture: where the image has too little texture, OpenCV's semi-global matcher instead
+    # of ELAS (ELAS' weak-texture disparities carry a bias that repeats from frame to frame, so the
+    # filter never converges there; SGBM's errors there are unbiased: depth/weak_texture.py)
+    weak_texture: str = "sgbm"      # sgbm: SGBM on weak-texture pixels (temporal filter only); off: ELAS everywhere (the paper)
+    weak_texture_gradient: float = 3.0  # grey levels/px: RMS x-gradient over 5x5 below which a pixel is weak texture
     max_disparity_step: float = 3.0  # px: drop pixels near a larger disparity step (flying pixels); 0: keep all
     discontinuity_radius: int = 2   # px, half size of that test's window ((2r+1)^2; 0: nothing dropped)
     min_depth: float = 0.2          # m, nearer measurements are dropped
@@ -87,6 +92,9 @@ class DepthConfig(Config):
         super().__post_init__()
         if self.stride < 1:
             raise ConfigError("DepthConfig.stride must be >= 1, got %d" % self.stride)
+        if self.weak_texture not in ("off", "sgbm"):
+            raise ConfigError("DepthConfig.weak_texture must be sgbm or off (quoted in YAML, where "
+                              "a bare off is false), got %r" % (self.weak_texture,))
         if self.densify not in ("off", "plane"):
             raise ConfigError("DepthConfig.densify must be plane or off (quoted in YAML, where a "
                               "bare off is false), got %r" % (self.densify,))

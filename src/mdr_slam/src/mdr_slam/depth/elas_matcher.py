@@ -18,7 +18,7 @@ from ..camera import StereoCamera
 from .config import ElasConfig
 
 __all__ = ["ElasMatcher", "ELAS_PRESETS", "measurement_from_disparity", "disparity_sigma",
-           "to_gray8"]
+           "texture_gradient2", "to_gray8"]
 
 # libelas' two presets (Elas::parameters(ROBOTICS / MIDDLEBURY) of libelas' elas.h), as data:
 # ElasMatcher sets every parameter from the table, then ElasConfig's disp_min, disp_max and
@@ -115,8 +115,20 @@ class ElasMatcher:
         return np.asarray(disp, dtype=np.float32)
 
 
+TEXTURE_WINDOW = 5   # px, window of the texture measure of the measurement model
+
+
+def texture_gradient2(grey: np.ndarray, window: int = TEXTURE_WINDOW) -> np.ndarray:
+    """Mean squared horizontal gradient (grey levels^2/px^2) over a ``window`` box: the texture
+    along the epipolar line that a matching window of that size sees."""
+    import cv2
+    g = np.asarray(grey, dtype=np.float32)
+    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3) * np.float32(1.0 / 8.0)
+    return cv2.boxFilter(gx * gx, -1, (window, window))
+
+
 def disparity_sigma(grey: np.ndarray, sigma_d: float = 0.5, texture_k: float = 0.0,
-                    window: int = 5) -> Union[float, np.ndarray]:
+                    window: int = TEXTURE_WINDOW) -> Union[float, np.ndarray]:
     """Per-pixel disparity noise (px): sigma_d^2 + (texture_k / g)^2, g = RMS horizontal gradient
     (grey levels/px) over a ``window`` box, the matching window's texture along the epipolar line.
 
@@ -128,10 +140,7 @@ def disparity_sigma(grey: np.ndarray, sigma_d: float = 0.5, texture_k: float = 0
     """
     if texture_k <= 0:
         return float(sigma_d)
-    import cv2
-    g = np.asarray(grey, dtype=np.float32)
-    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3) * np.float32(1.0 / 8.0)
-    g2 = cv2.boxFilter(gx * gx, -1, (window, window))
+    g2 = texture_gradient2(grey, window)
     return np.sqrt(np.float32(sigma_d) ** 2 +
                    np.float32(texture_k) ** 2 / np.maximum(g2, np.float32(1e-4))).astype(np.float32)
 

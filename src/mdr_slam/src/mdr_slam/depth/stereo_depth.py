@@ -1,4 +1,5 @@
-"""Node 2's whole per-frame computation in one call: rectify -> ELAS -> measurement -> filter.
+"""Node 2's whole per-frame computation in one call: rectify -> ELAS (and SGBM on weak texture) ->
+measurement -> filter.
 
 Both the depth node and the offline runner (``mdr run``) call :class:`StereoDepth`, so the live
 and the offline figures describe the same computation.
@@ -14,6 +15,7 @@ from ..camera import StereoCamera
 from .config import DepthConfig
 from .elas_matcher import ElasMatcher, disparity_sigma, measurement_from_disparity, to_gray8
 from .filter import DepthFilter, DepthOutput
+from .weak_texture import WeakTextureMatcher, combine_weak_texture
 
 __all__ = ["StereoDepth", "mask_discontinuities"]
 
@@ -40,6 +42,10 @@ def mask_discontinuities(disp: np.ndarray, max_step: float, radius: int = 2) -> 
 class StereoDepth:
     """Rectify -> ELAS -> (Z, var) -> DepthFilter, with per-stage timings (ms) in ``timings``.
 
+    With ``weak_texture: sgbm`` and the temporal filter on, a second matcher
+    (:class:`~mdr_slam.depth.weak_texture.WeakTextureMatcher`) gives the weak-texture pixels'
+    disparities; the ELAS-only baseline (``temporal: false``) stays ELAS alone.
+
     ``config``: a :class:`~mdr_slam.depth.config.DepthConfig` or a mapping of its fields
     (``StereoDepth(camera, {"tau": 0.02, "elas": {"disp_max": 64}})``); None: the defaults."""
 
@@ -48,6 +54,8 @@ class StereoDepth:
         self.camera = camera
         self.cfg = DepthConfig.of(config)
         self.matcher = ElasMatcher(self.cfg.elas)
+        self.weak_matcher = WeakTextureMatcher(self.cfg.elas.disp_max) \
+            if self.cfg.temporal and self.cfg.weak_texture == "sgbm" else None
         self.filter = DepthFilter(camera, self.cfg)
         if not camera.is_rectified:
             camera.rectify_maps()   # remap tables computed once, up front
@@ -79,19 +87,32 @@ class StereoDepth:
         t1 = time.perf_counter()
         disp = self.matcher.compute(left, right)
         t2 = time.perf_counter()
-        Z, var = self.measurement(disp, left)
+        weak = self.weak_matcher.compute(left, right) if self.weak_matcher is not None else None
         t3 = time.perf_counter()
+        Z, var = self.measurement(disp, left, weak)
+        t4 = time.perf_counter()
         t["rectify"] = 1e3 * (t1 - t0)
         t["elas"] = 1e3 * (t2 - t1)
-        t["measurement"] = 1e3 * (t3 - t2)
+        if weak is not None:
+            t["weak_texture"] = 1e3 * (t3 - t2)
+        t["measurement"] = 1e3 * (t4 - t3)
         return Z, var, left, t
 
-    def measurement(self, disp: np.ndarray, grey: np.ndarray):
-        """(Z, var) of a disparity with this configuration's noise model."""
+    def measurement(self, disp: np.ndarray, grey: np.ndarray,
+                    weak_disp: Optional[np.ndarray] = None):
+        """(Z, var) of a disparity with this configuration's noise model; ``weak_disp``: the
+        weak-texture matcher's disparity, taken on the weak-texture pixels."""
         c = self.cfg
         if c.max_disparity_step > 0:
             disp = mask_discontinuities(disp, c.max_disparity_step, c.discontinuity_radius)
+            if weak_disp is not None:
+                weak_disp = mask_discontinuities(weak_disp, c.max_disparity_step,
+                                                 c.discontinuity_radius)
         sigma = disparity_sigma(grey, c.sigma_d, c.sigma_d_texture)
+        if weak_disp is not None:
+            disp, sigma = combine_weak_texture(disp, sigma, weak_disp, grey,
+                                               c.weak_texture_gradient, c.sigma_d,
+                                               c.sigma_d_texture)
         return measurement_from_disparity(disp, self.camera, sigma, c.min_depth, c.max_depth)
 
     def process(self, stamp: float, left: np.ndarray, right: np.ndarray, T_map_cam: np.ndarray,
@@ -111,8 +132,8 @@ class StereoDepth:
         t1 = time.perf_counter()
         out = self.filter.process(stamp, T_map_cam, Z, var, grey, new_keyframe, keyframe_id)
         t["filter"] = 1e3 * (time.perf_counter() - t1)
-        t["total"] = t.get("rectify", 0.0) + t.get("elas", 0.0) + t.get("measurement", 0.0) + \
-            t["filter"]
+        t["total"] = t.get("rectify", 0.0) + t.get("elas", 0.0) + t.get("weak_texture", 0.0) + \
+            t.get("measurement", 0.0) + t["filter"]
         out.timings = t
         out.depth = Z
         return out
