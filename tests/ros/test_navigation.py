@@ -220,11 +220,17 @@ def test_sample_map_grid_agrees_with_the_cloud_and_plans_a_path(sample_map):
     floor = xyz[(xyz[:, 2] < p["grid_z_min"]) & (xyz[:, 2] >= p["grid_z_min"] - p["grid_free_band"])]
     assert len(band) > 3000 and len(floor) > 100
     # every obstacle-band point lies inside the grid, in an occupied cell; every occupied cell
-    # holds band points; the floor points lie in free or occupied cells (never unknown)
+    # holds band points, except the few that close wall gaps (grid_max_gap: unknown or only
+    # grazed by rays without it); the floor points lie in free or occupied cells (never unknown)
     rc = world_to_cell(band[:, :2], origin, res)
     assert (rc >= 0).all() and (rc[:, 0] < H).all() and (rc[:, 1] < W).all()
     assert (g[rc[:, 0], rc[:, 1]] == 100).all()
-    assert len(np.unique(rc[:, 0] * W + rc[:, 1])) == (g == 100).sum()
+    g_open, o_open, _ = map_products(c, dict(p, grid_max_gap=0.0))[1]
+    assert o_open == origin and g_open.shape == g.shape
+    assert len(np.unique(rc[:, 0] * W + rc[:, 1])) == (g_open == 100).sum()
+    closed = (g == 100) & (g_open != 100)
+    assert p["grid_max_gap"] > 0 and 0 < closed.sum() < 0.05 * (g == 100).sum()
+    assert ((g == 100) | ~(g_open == 100)).all() and ((g == g_open) | closed).all()
     fc = world_to_cell(floor[:, :2], origin, res)
     assert (fc >= 0).all() and (fc[:, 0] < H).all() and (fc[:, 1] < W).all()
     assert (g[fc[:, 0], fc[:, 1]] >= 0).all()
@@ -239,7 +245,8 @@ def test_sample_map_grid_agrees_with_the_cloud_and_plans_a_path(sample_map):
     assert (g[tc[:, 0], tc[:, 1]] != 100).all()
 
     # The robot of config/navigation (robot_radius) on the grid as navfn reads it (allow_unknown,
-    # move_base.yaml): the sample's low-texture floor is mostly unknown, the route included.
+    # move_base.yaml). The sample's low-texture floor is mostly unmapped, but the rays from the
+    # cameras free the office around the route (grid_raytrace), the route itself included.
     radius = float(common["robot_radius"])
     ok = traversable(g, res, radius, unknown_traversable=True)
     occ_xy = cell_to_world(np.argwhere(g == 100), origin, res)
@@ -276,10 +283,18 @@ def test_sample_map_grid_agrees_with_the_cloud_and_plans_a_path(sample_map):
     wall = cell_to_world(np.argwhere(core)[len(np.argwhere(core)) // 2], origin, res)
     assert plan_path((g, origin, res), start, wall, robot_radius=radius, unknown_traversable=True) is None
     assert plan_path((g, origin, res), start, wall) is None
-    assert g[tuple(hc)] == -1
-    assert plan_path((g, origin, res), start, half, robot_radius=radius) is None
+    # on the free cells alone (unknown not traversable) the same trip has a path: no shorter
+    # than the one across the unknown middle of the loop (no camera looked there), no longer than
+    # the camera's own way; without the rays it has none (the route is unknown)
+    assert (g[tc[:, 0], tc[:, 1]] == 0).mean() > 0.95
+    known = plan_path((g, origin, res), start, half, robot_radius=radius)
+    assert known is not None and plan.length - 1e-9 <= known.length <= 1.09 * route + 2 * res
+    g_floor, o_floor, _ = map_products(c, dict(p, grid_raytrace=False))[1]
+    assert (g_floor[world_to_cell(traj[:, :2], o_floor, res)[:, 0],
+                    world_to_cell(traj[:, :2], o_floor, res)[:, 1]] == -1).all()
+    assert plan_path((g_floor, o_floor, res), start, half, robot_radius=radius) is None
 
-    # Strictly on mapped floor: the two farthest-apart cells of the largest free component
+    # Strictly on free cells: the two farthest-apart cells of the largest free component
     free = g == 0
     lab, n = ndimage.label(free)          # 4-connected: reachable without cutting corners
     assert n >= 1
@@ -294,7 +309,7 @@ def test_sample_map_grid_agrees_with_the_cloud_and_plans_a_path(sample_map):
     assert (g[strict.cells[:, 0], strict.cells[:, 1]] == 0).all()
     print("sample map: grid %dx%d at %s, %d occupied, %d free, %d unknown cells (%d of %d route "
           "cells unknown); start->half-way path %.2f m (straight %.2f m, route %.2f m, A* %.1f ms, "
-          "robot radius %.2f m); on mapped floor %.2f m over %d free cells"
+          "robot radius %.2f m); on free cells %.2f m over %d free cells"
           % (W, H, origin, (g == 100).sum(), free.sum(), (g == -1).sum(),
              (g[tc[:, 0], tc[:, 1]] == -1).sum(), len(tc), plan.length, straight, route,
              1e3 * t_astar, radius, strict.length, len(cells)))

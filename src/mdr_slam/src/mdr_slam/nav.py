@@ -15,7 +15,7 @@ check that the published map is plannable:
   search frontier) or with SciPy's compiled Dijkstra on the free-cell graph built vectorized;
 * :func:`map_products` is what the fusion node publishes from one snapshot of its map: the
   display/obstacle cloud ``/mdr/map/points`` and the grid ``/mdr/map/grid`` (the node calls it, so
-  tests check the published contract without ROS).
+  tests check the published contract without ROS); :func:`map_views` reads a map cloud's views.
 """
 from __future__ import annotations
 
@@ -31,7 +31,7 @@ from scipy.sparse.csgraph import dijkstra
 from .fusion import occupancy_grid, voxel_downsample
 
 __all__ = ["Plan", "world_to_cell", "cell_to_world", "grid_from_msg", "traversable", "plan_path",
-           "map_min_confidence", "map_products"]
+           "map_min_confidence", "map_views", "map_products"]
 
 _SQRT2 = math.sqrt(2.0)
 # 8-neighbourhood (drow, dcol) and step length in cells
@@ -219,6 +219,15 @@ def map_min_confidence(params: dict) -> Tuple[int, int]:
     return int(params["display_min_confidence"]), int(params["grid_min_confidence"])
 
 
+def map_views(cloud) -> Optional[np.ndarray]:
+    """(N, 3) float64 views (the camera centre each point was last seen from, NaN: none) of a
+    map cloud (:meth:`mdr_slam.fusion.VoxelMap.to_cloud`, or a ``map.ply``), or None when the
+    cloud has no ``view_x, view_y, view_z`` fields (a peer's map, a map saved without views)."""
+    if not all(k in cloud for k in ("view_x", "view_y", "view_z")):
+        return None
+    return np.stack([cloud["view_x"], cloud["view_y"], cloud["view_z"]], 1).astype(np.float64)
+
+
 def map_products(cloud: dict, params: dict):
     """What the fusion node publishes from one snapshot ``cloud`` of its map
     (:meth:`mdr_slam.fusion.VoxelMap.to_cloud` at ``min(map_min_confidence(params))`` or lower:
@@ -229,7 +238,9 @@ def map_products(cloud: dict, params: dict):
     averaged per ``display_voxel`` cell when that is > 0), and ``grid`` the
     :func:`mdr_slam.fusion.occupancy_grid` tuple ``(data, origin, resolution)`` of
     ``/mdr/map/grid`` from the points of confidence ``>= grid_min_confidence`` (None when
-    ``publish_grid`` is off). Both are in the map frame.
+    ``publish_grid`` is off): with ``grid_raytrace`` and the cloud's views (``view_x, view_y,
+    view_z``) free space along the rays (``grid_raytrace_range``), and wall gaps of at most
+    ``grid_max_gap`` closed (missing keys: off). Both are in the map frame.
 
     move_base's obstacle layer marks ``/mdr/map/points`` between its min/max obstacle heights
     (config/navigation: ``grid_z_min``/``grid_z_max``) and never clears them (the cloud is in
@@ -243,8 +254,13 @@ def map_products(cloud: dict, params: dict):
     xyz = np.stack([cloud["x"], cloud["y"], cloud["z"]], 1).astype(np.float64)
     grid = None
     if p["publish_grid"]:
-        grid = occupancy_grid(xyz[conf_all >= mc_grid], p["grid_resolution"], p["grid_z_min"],
-                              p["grid_z_max"], p["grid_up_axis"], p["grid_free_band"])
+        sel = conf_all >= mc_grid
+        views = map_views(cloud) if p.get("grid_raytrace", False) else None
+        grid = occupancy_grid(xyz[sel], p["grid_resolution"], p["grid_z_min"],
+                              p["grid_z_max"], p["grid_up_axis"], p["grid_free_band"],
+                              None if views is None else views[sel],
+                              float(p.get("grid_max_gap", 0.0)),
+                              float(p.get("grid_raytrace_range", 0.0)))
     keep = conf_all >= mc_disp
     xyz = xyz[keep]
     inten = np.asarray(cloud["intensity"])[keep]

@@ -27,7 +27,8 @@ estimated-to-truth distances, completeness at 5 cm over the whole map; and compl
 precision and F-score, overall and per surface label, within ``--max-range`` of the camera path:
 what a stereo rig can see) and its occupancy grid against the true one (``mdr eval grid``:
 obstacle-cell recall and precision with one cell of tolerance, occupied cells on the camera's
-route). The runs place the frames with the simulator's true poses unless ``--pose-source orb``
+route, free-cell precision; the grid the fusion node publishes, rays from map.ply's views
+included). The runs place the frames with the simulator's true poses unless ``--pose-source orb``
 (``mdr run`` is given ``--pose-source`` explicitly: its own default is orb; the peer always uses
 the true poses). Writes ``DIR/ablation.json``, ``DIR/ablation.md`` and ``DIR/ablation.png``.
 
@@ -55,7 +56,7 @@ import numpy as np
 
 from ..eval import DEFAULT_MAX_RANGE, ate, grid_metrics, grid_params, map_alignment, map_metrics
 from ..io import cloud_xyz, read_cloud, read_tum
-from ..nav import map_min_confidence
+from ..nav import map_min_confidence, map_views
 from . import mdr_command
 from .main_run import _overrides, add_bag_input_arguments, bag_input_argv, bag_topics
 
@@ -341,6 +342,8 @@ def run_ablation(args) -> int:
                 continue
             cloud = read_cloud(os.path.join(d, "map.ply"))
             est = cloud_xyz(cloud)
+            # the views of mdr run's map (a peer's cloud has none: no rays), as the node uses them
+            views = map_views(cloud) if gparams["raytrace"] else None
             summ = json.load(open(os.path.join(d, "summary.json")))
             traj = None
             if (args.pose_source or "groundtruth") == "orb" and c not in PEERS:
@@ -351,18 +354,23 @@ def run_ablation(args) -> int:
                 traj = ate(est_traj, gt_traj, "se3")
                 al = map_alignment(est_traj, gt_traj)
                 est = est @ np.asarray(al["rotation"]).T + np.asarray(al["translation"])
+                if views is not None:   # the rays move with their points
+                    views = views @ np.asarray(al["rotation"]).T + np.asarray(al["translation"])
             # the maps are in the simulator's map frame (true poses, or aligned above), so the
             # true camera path is their path too
             try:
                 m = map_metrics(est, gt_xyz, threshold=args.threshold, gt_labels=gt.get("surface"),
                                 path=gt_path, max_range=args.max_range)
-                # the fusion node's grid: confident points of a confidence map, all points otherwise
+                # the fusion node's grid: confident points of a confidence map, all points
+                # otherwise; rays from the points' views, wall gaps closed
                 mc = map_min_confidence({"confidence": CONFIGS.get(c, {}).get("confidence", False),
                                          "display_min_confidence": gparams["min_confidence"],
                                          "grid_min_confidence": gparams["min_confidence"]})[1]
                 g = grid_metrics(est, gt_xyz, gt.get("surface"), gt_path, cloud.get("confidence"),
                                  mc, gparams["resolution"], gparams["z_min"], gparams["z_max"],
-                                 gparams["up_axis"], gparams["free_band"], 1, args.max_range)
+                                 gparams["up_axis"], gparams["free_band"], 1, args.max_range,
+                                 est_views=views, max_gap=gparams["max_gap"],
+                                 raytrace_range=gparams["raytrace_range"])
             except ValueError as e:   # e.g. an empty map: one row says so, the others are scored
                 results[scene][c] = {"error": "not scored: %s" % e}
                 codes[name] = 1
@@ -402,7 +410,8 @@ def _grid_params(sets) -> dict:
     over = {}
     names = {"grid_resolution": "resolution", "grid_z_min": "z_min", "grid_z_max": "z_max",
              "grid_up_axis": "up_axis", "grid_free_band": "free_band",
-             "grid_min_confidence": "min_confidence"}
+             "grid_min_confidence": "min_confidence", "grid_raytrace": "raytrace",
+             "grid_raytrace_range": "raytrace_range", "grid_max_gap": "max_gap"}
     for it in sets or []:
         key, _, val = it.partition("=")
         node, _, k = key.partition(".")
@@ -427,7 +436,9 @@ def _grid_row(g) -> dict:
     """The table's figures of grid_metrics."""
     out = OrderedDict([("recall", g["recall"]), ("precision", g["precision"]),
                        ("n_true_cells", g["n_true_cells"]), ("n_est_cells", g["n_est_cells"]),
-                       ("min_confidence", g["min_confidence"])])
+                       ("min_confidence", g["min_confidence"]),
+                       ("free_precision", g["free_precision"]),
+                       ("n_free_cells", g["n_est_free_cells"]), ("raytrace", g["raytrace"])])
     out["recall_per_label"] = OrderedDict((k, v["recall"]) for k, v in g.get("per_label", {}).items())
     rng = g.get("in_range", {})
     out["recall_in_range"] = rng.get("recall")
@@ -490,15 +501,18 @@ def _markdown_in_range(report) -> list:
              "of the ground-truth map: obstacle-cell recall and precision with one cell of "
              "tolerance (recall of all true cells, and of those of the true points within range); "
              "route: occupied estimated cells on the camera's ground track, of all its cells "
-             "(must be 0). Time: wall time per frame, median / p90." % (
+             "(must be 0); free precision: share of the grid's free cells (rays from the points' "
+             "views when the map has them, mapped floor) that are no true obstacle cell, and "
+             "their number; wall gaps up to %g m closed. Time: wall time per frame, median / "
+             "p90." % (
                  100 * report["threshold_m"], report["max_range_m"], g.get("resolution", 0.05),
                  g.get("z_min", 0.1), g.get("z_max", 1.5), g.get("up_axis", "z"),
-                 g.get("min_confidence", 3)),
+                 g.get("min_confidence", 3), g.get("max_gap", 0.0)),
              "",
              "| scene | config | C | P | F-score | F low-texture | C low-texture | F textured "
              "| F specular | grid recall (all / in range) | grid recall low-texture (in range) "
-             "| grid precision | route cells occupied | ms/frame |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| grid precision | grid free precision (cells) | route cells occupied | ms/frame |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for scene, res in report["results"].items():
         for c, r in res.items():
             if "in_range" not in r:
@@ -508,13 +522,15 @@ def _markdown_in_range(report) -> list:
             lab = lambda k, f: pl.get(k, {}).get(f)
             t = r.get("timing") or {}
             ms = ("%.0f / %.0f" % (t["median_ms"], t["p90_ms"])) if "median_ms" in t else "-"
-            lines.append("| %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %d / %d | %s |" % (
+            lines.append("| %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %s (%s) "
+                         "| %d / %d | %s |" % (
                 scene, c, _pct(ir["completeness"]), _pct(ir["precision"]), _f3(ir["fscore"]),
                 _f3(lab("low_texture", "fscore")), _pct(lab("low_texture", "completeness")),
                 _f3(lab("textured", "fscore")), _f3(lab("specular", "fscore")),
                 "%s / %s" % (_pct(gr["recall"]), _pct(gr["recall_in_range"])),
                 _pct(gr["recall_in_range_per_label"].get("low_texture")),
-                _pct(gr["precision"]), gr["route_occupied"], gr["route_cells"], ms))
+                _pct(gr["precision"]), _pct(gr.get("free_precision")), gr.get("n_free_cells", "-"),
+                gr["route_occupied"], gr["route_cells"], ms))
     return lines
 
 

@@ -4,6 +4,7 @@
     mdr eval rpe EST GT [--delta 10 --delta-unit m] [--align none]
     mdr eval map EST.ply GT.ply [--threshold 0.05] [--plot out.png] [--trajectory TUM --max-range 4]
     mdr eval grid MAP.ply GT_MAP.ply [--trajectory TUM] [--min-confidence N] [--tolerance 1]
+        [--raytrace on|off] [--max-gap 0.5]
     mdr eval depth EST GT [--est-scale 1 --gt-scale 1] [--depth]   (files or folders of frames)
 """
 from __future__ import annotations
@@ -23,6 +24,7 @@ from ..eval.trajectory import (alignment_matrix, ate, read_for_eval, rpe,
                                transform_trajectory)
 from ..io.atomic import atomic_write
 from ..io.pointcloud import cloud_xyz, read_cloud
+from ..nav import map_views
 
 
 def add_parser(subparsers, name, help_text):
@@ -104,6 +106,15 @@ def add_parser(subparsers, name, help_text):
     g.add_argument("--z-max", type=float, default=gp["z_max"])
     g.add_argument("--up-axis", default=gp["up_axis"])
     g.add_argument("--free-band", type=float, default=gp["free_band"])
+    g.add_argument("--raytrace", choices=("on", "off"), default="on" if gp["raytrace"] else "off",
+                   help="free space along the rays from the map's views (view_x, view_y, view_z "
+                        "fields; a map without them has no rays), as grid_raytrace (default %s)"
+                        % ("on" if gp["raytrace"] else "off"))
+    g.add_argument("--raytrace-range", type=float, default=gp["raytrace_range"],
+                   help="m of each ray traced, 0 = whole ray (grid_raytrace_range)")
+    g.add_argument("--max-gap", type=float, default=gp["max_gap"],
+                   help="m, wall gaps no ray looked through closed up to this, 0 = off "
+                        "(grid_max_gap, default %g)" % gp["max_gap"])
     g.add_argument("--label-field", default="surface", help="per-point label field of the GT cloud")
     g.add_argument("--json", default=None)
     g.set_defaults(func=run_grid)
@@ -222,10 +233,12 @@ def run_grid(args):
         mc = args.min_confidence
         if mc is None:
             mc = map_grid_confidence(args.est, est, grid_params()["min_confidence"])
+        views = map_views(est) if args.raytrace == "on" else None
         res = grid_metrics(cloud_xyz(est), cloud_xyz(gt), labels, path,
                            est.get("confidence"), mc, args.resolution,
                            args.z_min, args.z_max, args.up_axis, args.free_band, args.tolerance,
-                           args.max_range if path is not None else None)
+                           args.max_range if path is not None else None, est_views=views,
+                           max_gap=args.max_gap, raytrace_range=args.raytrace_range)
     except (ValueError, OSError, KeyError) as e:
         print("mdr eval grid: %s" % e, file=sys.stderr)
         return 1

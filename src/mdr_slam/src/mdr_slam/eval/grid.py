@@ -5,9 +5,10 @@ Both grids come from :func:`mdr_slam.fusion.occupancy_grid`, the function behind
 ``grid_z_min``/``grid_z_max`` band, ``grid_up_axis``, ``grid_free_band``): the true grid from the
 simulator's ground-truth map (every surface point the camera saw), the estimated one from a run's
 map, keeping the points of confidence ``>= grid_min_confidence`` as the node does (all points of a
-map without confidence, e.g. the plain voxel grid or a peer's cloud). Only obstacle cells (value
-100) are compared, as whole cells on one lattice: ``occupancy_grid`` puts cell edges at multiples
-of the resolution, so its origin divided by the resolution is an integer cell offset.
+map without confidence, e.g. the plain voxel grid or a peer's cloud). Cells are compared whole, on
+one lattice (``occupancy_grid`` puts cell edges at multiples of the resolution, so its origin
+divided by the resolution is an integer cell offset): the obstacle cells (value 100) of both
+grids, and the estimate's free cells (0) against the true obstacle cells.
 
 * recall: share of true obstacle cells with an estimated obstacle cell within ``tolerance`` cells
   (Chebyshev distance: one cell of tolerance includes the diagonal neighbours), also per surface
@@ -16,7 +17,15 @@ of the resolution, so its origin divided by the resolution is an integer cell of
 * precision: share of estimated obstacle cells with a true obstacle cell within ``tolerance``;
 * route: cells the camera's ground projection passes through (the path sampled every quarter
   cell, a footprint of one cell) that the estimated grid marks occupied. The camera went there,
-  so an obstacle there is a phantom that would block a planner: it must be 0.
+  so an obstacle there is a phantom that would block a planner: it must be 0;
+* free precision: share of the estimated grid's free cells (value 0: mapped floor, or crossed by
+  a ray) that are not true obstacle cells (no tolerance: a ray or a floor point that frees a
+  wall's cell is an error a planner would drive into).
+
+The estimated grid is built as the node builds it: with free space along the rays from the
+points' views when the map has them (``map.ply``'s ``view_x, view_y, view_z``, parameter
+``grid_raytrace``) and wall gaps of at most ``grid_max_gap`` closed; the true grid from the
+ground-truth points alone (no views, no gap closing: the truth is not repaired).
 """
 from __future__ import annotations
 
@@ -28,40 +37,76 @@ import numpy as np
 from ..fusion.grid import grid_axes, occupancy_grid
 from .map import SURFACE_LABELS, path_positions, within_range
 
-__all__ = ["grid_params", "obstacle_cells", "route_cells", "cells_near", "grid_metrics"]
+__all__ = ["grid_params", "grid_cells", "obstacle_cells", "route_cells", "cells_near",
+           "grid_metrics"]
 
 OCCUPIED = 100
+FREE = 0
 
 
 def grid_params(**overrides) -> Dict[str, object]:
     """The fusion node's grid parameters (FusionNodeConfig defaults, as config/fusion.yaml ships
-    them) under the keyword names of :func:`grid_metrics`; ``overrides`` replace them."""
+    them) under the keyword names of :func:`grid_metrics` (plus ``raytrace``: whether the map's
+    views are used); ``overrides`` replace them (strings are converted, e.g. from ``--set``)."""
     from ..nodes.config import FusionNodeConfig   # ROS-free dataclass
     c = FusionNodeConfig()
     out = OrderedDict([("resolution", float(c.grid_resolution)), ("z_min", float(c.grid_z_min)),
                        ("z_max", float(c.grid_z_max)), ("up_axis", str(c.grid_up_axis)),
                        ("free_band", float(c.grid_free_band)),
-                       ("min_confidence", int(c.grid_min_confidence))])
+                       ("min_confidence", int(c.grid_min_confidence)),
+                       ("raytrace", bool(c.grid_raytrace)),
+                       ("raytrace_range", float(c.grid_raytrace_range)),
+                       ("max_gap", float(c.grid_max_gap))])
     for k, v in overrides.items():
         if k not in out:
             raise ValueError("unknown grid parameter %r (known: %s)" % (k, ", ".join(out)))
-        if v is not None:
-            out[k] = type(out[k])(v)
+        if v is None:
+            continue
+        if isinstance(out[k], bool) and isinstance(v, str):
+            word = v.strip().lower()
+            if word not in ("true", "false", "1", "0", "yes", "no", "on", "off"):
+                raise ValueError("grid parameter %s must be true or false, got %r" % (k, v))
+            v = word in ("true", "1", "yes", "on")
+        out[k] = type(out[k])(v)
     return out
 
 
-def obstacle_cells(points: np.ndarray, resolution: float = 0.05, z_min: float = 0.1,
-                   z_max: float = 1.5, up_axis: str = "z", free_band: float = 0.3) -> np.ndarray:
-    """(N, 2) int64 lattice cells ``(i, j)`` (grid-plane x and y over ``resolution``, floored)
-    that :func:`mdr_slam.fusion.occupancy_grid` of ``points`` marks occupied."""
+def grid_cells(points: np.ndarray, resolution: float = 0.05, z_min: float = 0.1,
+               z_max: float = 1.5, up_axis: str = "z", free_band: float = 0.3,
+               views: Optional[np.ndarray] = None, max_gap: float = 0.0,
+               raytrace_range: float = 0.0):
+    """``(occupied, free)``: (N, 2) int64 lattice cells ``(i, j)`` (grid-plane x and y over
+    ``resolution``, floored) that :func:`mdr_slam.fusion.occupancy_grid` of ``points`` (and
+    their ``views``, NaN rows: no ray) marks occupied and free. Non-finite points are dropped."""
     P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    P = P[np.all(np.isfinite(P), axis=1)]
+    ok = np.all(np.isfinite(P), axis=1)
+    if views is not None:
+        views = np.asarray(views, dtype=np.float64).reshape(-1, 3)
+        if len(views) != len(P):
+            raise ValueError("%d views for %d points" % (len(views), len(P)))
+        views = views[ok]
+    P = P[ok]
     if len(P) == 0:
-        return np.zeros((0, 2), np.int64)
-    grid, origin, res = occupancy_grid(P, resolution, z_min, z_max, up_axis, free_band)
-    rows, cols = np.nonzero(grid == OCCUPIED)
+        return np.zeros((0, 2), np.int64), np.zeros((0, 2), np.int64)
+    grid, origin, res = occupancy_grid(P, resolution, z_min, z_max, up_axis, free_band, views,
+                                       max_gap, raytrace_range)
     off = np.rint(np.asarray(origin) / res).astype(np.int64)
-    return np.stack([cols + off[0], rows + off[1]], axis=1).astype(np.int64)
+
+    def cells(value):
+        rows, cols = np.nonzero(grid == value)
+        return np.stack([cols + off[0], rows + off[1]], axis=1).astype(np.int64)
+    return cells(OCCUPIED), cells(FREE)
+
+
+def obstacle_cells(points: np.ndarray, resolution: float = 0.05, z_min: float = 0.1,
+                   z_max: float = 1.5, up_axis: str = "z", free_band: float = 0.3,
+                   views: Optional[np.ndarray] = None, max_gap: float = 0.0,
+                   raytrace_range: float = 0.0) -> np.ndarray:
+    """(N, 2) int64 lattice cells ``(i, j)`` (grid-plane x and y over ``resolution``, floored)
+    that :func:`mdr_slam.fusion.occupancy_grid` of ``points`` marks occupied (with ``views``
+    and ``max_gap``, as :func:`grid_cells`)."""
+    return grid_cells(points, resolution, z_min, z_max, up_axis, free_band, views, max_gap,
+                      raytrace_range)[0]
 
 
 def route_cells(path, resolution: float = 0.05, up_axis: str = "z") -> np.ndarray:
@@ -118,21 +163,35 @@ def grid_metrics(est_xyz: np.ndarray, gt_xyz: np.ndarray, gt_labels: Optional[np
                  path=None, est_confidence: Optional[np.ndarray] = None,
                  min_confidence: int = 3, resolution: float = 0.05, z_min: float = 0.1,
                  z_max: float = 1.5, up_axis: str = "z", free_band: float = 0.3,
-                 tolerance: int = 1, max_range: Optional[float] = None) -> Dict[str, object]:
+                 tolerance: int = 1, max_range: Optional[float] = None,
+                 est_views: Optional[np.ndarray] = None, max_gap: float = 0.0,
+                 raytrace_range: float = 0.0) -> Dict[str, object]:
     """Obstacle-cell recall and precision of the grid of ``est_xyz`` against that of ``gt_xyz``,
-    and the estimated obstacles on the camera's route (see the module docstring).
+    the estimated obstacles on the camera's route and the free cells' precision (see the module
+    docstring).
 
     ``est_confidence`` (N,): only estimated points with ``confidence >= min_confidence`` mark
-    cells (None: all points). ``gt_labels`` (M,) adds per-label recall; ``path`` (a Trajectory or
-    (K, 3) positions in the map frame) adds ``route`` and, with ``max_range``, ``in_range``.
+    cells (None: all points). ``est_views`` (N, 3): the camera centre each estimated point was
+    last seen from (NaN rows: none) for the estimated grid's rays (None: no rays);
+    ``max_gap``, ``raytrace_range``: the node's ``grid_max_gap``, ``grid_raytrace_range`` for
+    the estimated grid (the defaults here are off; :func:`grid_params` has the node's).
+    ``gt_labels`` (M,) adds per-label recall; ``path`` (a Trajectory or (K, 3) positions in the
+    map frame) adds ``route`` and, with ``max_range``, ``in_range``.
     """
     est = np.asarray(est_xyz, dtype=np.float64).reshape(-1, 3)
     gt = np.asarray(gt_xyz, dtype=np.float64).reshape(-1, 3)
+    views = None
+    if est_views is not None:
+        views = np.asarray(est_views, dtype=np.float64).reshape(-1, 3)
+        if len(views) != len(est):
+            raise ValueError("%d views for %d estimated points" % (len(views), len(est)))
     if est_confidence is not None:
         conf = np.asarray(est_confidence).reshape(-1)
         if len(conf) != len(est):
             raise ValueError("%d confidences for %d estimated points" % (len(conf), len(est)))
         est = est[conf >= min_confidence]
+        if views is not None:
+            views = views[conf >= min_confidence]
     labels = None
     if gt_labels is not None:
         labels = np.asarray(gt_labels).reshape(-1).astype(int)
@@ -146,16 +205,20 @@ def grid_metrics(est_xyz: np.ndarray, gt_xyz: np.ndarray, gt_labels: Optional[np
     if len(true_cells) == 0:
         raise ValueError("the ground-truth cloud has no point in the obstacle band [%g, %g] m "
                          "along %s" % (z_min, z_max, up_axis))
-    est_cells = obstacle_cells(est, **kw)
+    est_cells, free_cells = grid_cells(est, views=views, max_gap=float(max_gap),
+                                       raytrace_range=float(raytrace_range), **kw)
     found = cells_near(true_cells, est_cells, tolerance)
     right = cells_near(est_cells, true_cells, tolerance)
+    free_ok = ~cells_near(free_cells, true_cells, 0)
     out = OrderedDict([
         ("resolution", float(resolution)), ("z_min", float(z_min)), ("z_max", float(z_max)),
         ("up_axis", up_axis), ("tolerance_cells", int(tolerance)),
         ("min_confidence", int(min_confidence) if est_confidence is not None else None),
         ("n_est_points", int(len(est))),
         ("n_true_cells", int(len(true_cells))), ("n_est_cells", int(len(est_cells))),
-        ("recall", _share(found)), ("precision", _share(right))])
+        ("recall", _share(found)), ("precision", _share(right)),
+        ("raytrace", views is not None), ("max_gap", float(max_gap)),
+        ("n_est_free_cells", int(len(free_cells))), ("free_precision", _share(free_ok))])
     if labels is not None:
         out["per_label"] = _label_recall(gt, labels, est_cells, kw, tolerance)
     if path is not None:

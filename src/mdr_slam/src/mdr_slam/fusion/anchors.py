@@ -34,7 +34,8 @@ class AnchorCorrections:
         return int(live.sum())
 
     def apply_corrections(self, corrections: Dict[int, np.ndarray]) -> int:
-        """Move the points of corrected anchors rigidly: ``p' = T_new inv(T_old) p``.
+        """Move the points of corrected anchors rigidly: ``p' = T_new inv(T_old) p`` (their
+        normals and views with them).
 
         ``corrections``: ``{anchor_id: T_map_anchor_new}``. Anchors the map has never seen are
         stored (future clouds anchored to them will use the pose). Moved points are re-keyed in
@@ -76,6 +77,8 @@ class AnchorCorrections:
         N = np.einsum("nij,nj->ni", R, a["normal"][slots].astype(np.float64))
         a["pos"][slots] = P
         a["normal"][slots] = N
+        # the ray from the view to the point moves with the point (a missing view stays NaN)
+        a["view"][slots] = np.einsum("nij,nj->ni", R, a["view"][slots].astype(np.float64)) + t
         self._erase(a["key"][slots])
         if self.confidence:
             b = normal_bins(N)[0]  # the bin of the rotated normal, as at insertion

@@ -155,7 +155,8 @@ class VoxelIntegrator:
 
         matched = target >= 0
         if matched.any():
-            self._merge(target[matched], Pd[matched], Nd[matched], wd[matched], Id[matched], stamp)
+            self._merge(target[matched], Pd[matched], Nd[matched], wd[matched], Id[matched], stamp,
+                        center)
         st["n_merged"] = int(matched.sum())
         um = np.nonzero(~matched)[0]
         if len(um):
@@ -178,6 +179,7 @@ class VoxelIntegrator:
             a["anchor"][slots] = -1 if anchor_id is None else anchor_id
             a["key"][slots] = keys
             a["alive"][slots] = True
+            a["view"][slots] = center
             self._n += len(slots)
             st["n_inserted"] = len(slots)
             if self.confidence and len(slots):
@@ -204,8 +206,9 @@ class VoxelIntegrator:
         self._t_last = t  # >= the previous one by construction
         return t
 
-    def _merge(self, t, P, N, w, I, stamp):
-        """Weighted running mean of targets ``t`` (duplicates allowed) with new observations."""
+    def _merge(self, t, P, N, w, I, stamp, view):
+        """Weighted running mean of targets ``t`` (duplicates allowed) with new observations
+        seen from the camera centre ``view`` (which becomes their view)."""
         a = self._a
         u, inv = np.unique(t, return_inverse=True)
         m = len(u)
@@ -226,6 +229,7 @@ class VoxelIntegrator:
         a["weight"][u] = Wn
         a["confidence"][u] += 1  # one vote per cloud that saw the point
         a["last_seen"][u] = stamp
+        a["view"][u] = view
         if self.confidence and self.rekey:
             self.n_cell_folds += self._rekey(u)
 

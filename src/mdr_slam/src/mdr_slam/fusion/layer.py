@@ -27,7 +27,10 @@ _FIELDS = OrderedDict([
     ("anchor", (np.int64, ())),
     ("key", (np.int32, (4,))),
     ("alive", (np.bool_, ())),
+    ("view", (np.float32, (3,))),   # camera centre (map) of the latest cloud that integrated it
 ])
+# a slot's value before anything sets it (others: 0): no viewpoint, so no ray in the grid
+_FILL = {"view": np.nan}
 
 
 class VoxelLayer:
@@ -60,7 +63,7 @@ class VoxelLayer:
     def _grow(self, cap: int) -> None:
         new = {}
         for name, (dt, shape) in _FIELDS.items():
-            a = np.zeros((cap,) + shape, dtype=dt)
+            a = np.full((cap,) + shape, _FILL.get(name, 0), dtype=dt)
             if name in self._a:
                 a[: self._cap] = self._a[name][: self._cap]
             new[name] = a
@@ -111,7 +114,10 @@ class VoxelLayer:
         return np.concatenate([vox, bins.reshape(-1, 1).astype(np.int64)], axis=1).astype(np.int32)
 
     def _merge_slots(self, dst: np.ndarray, src: np.ndarray) -> None:
-        """Fold map points ``src`` into ``dst`` (weighted; confidences add)."""
+        """Fold map points ``src`` into ``dst`` (weighted; confidences add; the view of the
+        most recent sighting)."""
+        if len(src) == 0:
+            return
         a = self._a
         u, inv = np.unique(dst, return_inverse=True)
         m = len(u)
@@ -130,6 +136,14 @@ class VoxelLayer:
         a["intensity"][u] = (W0 * a["intensity"][u] + acc(a["intensity"][src])) / Wn
         a["weight"][u] = Wn
         a["confidence"][u] += np.bincount(inv, weights=a["confidence"][src], minlength=m).astype(np.int32)
+        # the view of the newer sighting: the newest source with a view, when it was seen later
+        # than the target or the target has none (a view is never replaced by none)
+        ls = np.where(np.all(np.isfinite(a["view"][src]), axis=1), a["last_seen"][src], -np.inf)
+        o = np.lexsort((ls, inv))
+        last = o[np.r_[np.flatnonzero(inv[o][1:] != inv[o][:-1]), len(o) - 1]]  # one per target
+        has = np.all(np.isfinite(a["view"][u]), axis=1)
+        take = (ls[last] > -np.inf) & ((ls[last] > a["last_seen"][u]) | ~has)
+        a["view"][u[take]] = a["view"][src[last[take]]]
         np.minimum.at(a["first_seen"], u[inv], a["first_seen"][src])
         np.maximum.at(a["last_seen"], u[inv], a["last_seen"][src])
 

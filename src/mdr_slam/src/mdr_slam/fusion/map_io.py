@@ -27,9 +27,11 @@ class MapIO:
         """The map as a cloud dict for :func:`mdr_slam.io.write_cloud` / PointCloud2.
 
         Fields: x, y, z, intensity, confidence, nx, ny, nz, weight, first_seen, last_seen,
-        anchor_id, nbin, and with ``keys`` the hash voxel kx, ky, kz (the voxel of the position,
-        except for a point that moved into a voxel held by a point whose normal disagrees, or
-        with ``rekey=False``): everything :meth:`load` needs to restore the same map.
+        anchor_id, nbin, view_x, view_y, view_z (the camera centre the point was last seen from,
+        NaN when unknown: the occupancy grid's rays), and with ``keys`` the hash voxel kx, ky, kz
+        (the voxel of the position, except for a point that moved into a voxel held by a point
+        whose normal disagrees, or with ``rekey=False``): everything :meth:`load` needs to
+        restore the same map.
         """
         a = self._a
         s = self.live_slots()
@@ -44,6 +46,9 @@ class MapIO:
             ("anchor_id", a["anchor"][s].astype(np.int32)),
             ("nbin", a["key"][s, 3].astype(np.uint8)),
         ])
+        v = a["view"][s]
+        for i, k in enumerate(("view_x", "view_y", "view_z")):
+            out[k] = v[:, i].copy()
         if keys:
             for i, k in enumerate(("kx", "ky", "kz")):
                 out[k] = a["key"][s, i].copy()
@@ -79,8 +84,9 @@ class MapIO:
         also be a cloud dict (as :meth:`to_cloud` returns) to add points directly.
 
         ``append=False`` replaces the map. Missing fields get defaults (confidence =
-        ``min_confidence`` so a plain cloud survives cleaning, normals +z). Points that fall on an
-        occupied key are merged. Returns the number of points in the map afterwards.
+        ``min_confidence`` so a plain cloud survives cleaning, normals +z, views NaN: no ray in
+        the occupancy grid). Points that fall on an occupied key are merged. Returns the number
+        of points in the map afterwards.
         """
         from ..io import read_cloud
         c = read_cloud(path) if isinstance(path, str) else path
@@ -102,6 +108,10 @@ class MapIO:
             N = np.stack([c["nx"], c["ny"], c["nz"]], 1).astype(np.float64)
         else:
             N = np.tile([0.0, 0.0, 1.0], (n, 1))
+        if all(k in c for k in ("view_x", "view_y", "view_z")):
+            V = np.stack([c["view_x"], c["view_y"], c["view_z"]], 1).astype(np.float64)
+        else:   # a map saved before views were kept, or a plain cloud
+            V = np.full((n, 3), np.nan)
         if self.confidence:
             b = get("nbin", -1, np.int32)
             b = np.where((b >= 0) & (b < 6), b, normal_bins(N)[0]) if n else b
@@ -127,6 +137,7 @@ class MapIO:
         a["anchor"][slots] = get("anchor_id", -1, np.int64)[sel]
         a["key"][slots] = keys[sel]
         a["alive"][slots] = True
+        a["view"][slots] = V[sel]
         if len(slots):  # the map's clock continues after the loaded points (see _map_time)
             t_max = float(np.max(a["last_seen"][slots]))
             if np.isfinite(t_max) and (self._t_last is None or t_max > self._t_last):

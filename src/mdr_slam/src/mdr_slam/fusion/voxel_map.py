@@ -80,6 +80,15 @@ pose. :meth:`apply_corrections` moves the points of corrected anchors rigidly by
 map follows pose-graph corrections without re-running depth. A merged point follows the anchor that
 created it; observations from later keyframes only refine it.
 
+Views
+-----
+Every point also keeps its ``view``: the camera centre (map frame) of the latest cloud that
+created or updated it. The occupancy grid traces a ray from the view to the point to mark free
+space. A correction moves the view with the point (same rigid motion), so the ray stays the
+one that was observed; a fold of one point into another keeps the view of the more recent
+sighting (a missing view, NaN, never replaces one). Saved and loaded with the map
+(``view_x``, ``view_y``, ``view_z``; NaN, i.e. no ray, for a map file without them).
+
 The map is one class, :class:`VoxelMap`, assembled from mixins along its jobs: storage
 (:mod:`.layer`), fuse/update (:mod:`.integrator`), clean (:mod:`.cleaning`), keyframe anchors
 (:mod:`.anchors`) and file I/O (:mod:`.map_io`); per-cloud helpers are in :mod:`.cloud`.
@@ -176,9 +185,12 @@ class VoxelMap(VoxelLayer, VoxelIntegrator, VoxelCleaning, AnchorCorrections, Ma
     # ------------------------------------------------------------------ occupancy grid
     def occupancy_grid(self, resolution: float = 0.05, z_min: float = 0.1, z_max: float = 1.5,
                        min_confidence: Optional[int] = None, up_axis: str = "z",
-                       free_band: float = 0.3):
+                       free_band: float = 0.3, raytrace: bool = True, max_gap: float = 0.5,
+                       raytrace_range: float = 0.0):
         """2-D occupancy grid for planners (move_base) from the confident map points (default
-        ``min_confidence`` of the map; all points for ``confidence=False``).
+        ``min_confidence`` of the map; all points for ``confidence=False``), with free space
+        along the rays from the points' views (``raytrace``) and wall gaps of at most
+        ``max_gap`` m closed (defaults: the fusion node's).
 
         See :func:`mdr_slam.fusion.grid.occupancy_grid` for the cell values and the frame.
         Returns ``(grid int8 (H, W), origin (x, y), resolution)``.
@@ -187,7 +199,11 @@ class VoxelMap(VoxelLayer, VoxelIntegrator, VoxelCleaning, AnchorCorrections, Ma
         mc = self.min_confidence if min_confidence is None else min_confidence
         if not self.confidence and min_confidence is None:
             mc = 0
-        return occupancy_grid(self.points(mc), resolution, z_min, z_max, up_axis, free_band)
+        s = self.live_slots()
+        s = s[self._a["confidence"][s] >= mc]
+        views = self._a["view"][s] if raytrace else None
+        return occupancy_grid(self._a["pos"][s].astype(np.float64), resolution, z_min, z_max,
+                              up_axis, free_band, views, max_gap, raytrace_range)
 
     # ------------------------------------------------------------------ misc
     def close(self) -> None:

@@ -102,6 +102,9 @@ class FusionNodeConfig(Config):
     grid_free_band: float = 0.3     # m below grid_z_min: floor points there mark a cell free
     grid_up_axis: str = "z"         # z for a REP-105 map; -y if map is the first camera's optical frame
     grid_min_confidence: int = 3    # map points of at least this confidence mark grid cells
+    grid_raytrace: bool = True      # free cells along the ray from each point's camera to the point
+    grid_raytrace_range: float = 0.0  # m, free only the first this many metres of a ray; 0: whole ray
+    grid_max_gap: float = 0.5       # m, close gaps up to this in straight walls where no ray passed; 0: off
     # files (writes are atomic: temporary file + rename)
     map_dir: str = ""               # the services' paths resolve inside it; "": $ROS_HOME/mdr_maps
     map_path: str = "last"          # map folder (in map_dir; or a .ply/.pcd file) of autosave and ~save_map
