@@ -4,7 +4,7 @@
     mdr bench BAG --out DIR [--duration S] [--loop] [--rate 1] [--pose-source orb|groundtruth]
         [--left-image TOPIC ... --image-transport compressed --sync-tolerance S --rectified auto]
     mdr bench --ablation --out DIR [--scenes office,corridor] [--duration 30] [--pose-source groundtruth]
-        [--max-range 4] [--configs elas_only,temporal,confidence,full,sgbm_tsdf]
+        [--max-range 4] [--configs elas_only,temporal,confidence,full,full_elas,sgbm_tsdf]
     mdr bench BAG --out DIR --compare [--runs 3] [--no-live] [--max-frames N]
     mdr bench --compare --kitti DIR | --euroc DIR --out DIR [--runs 3] [--max-frames N]
 
@@ -19,8 +19,9 @@ arguments of the same names (``left_image:=...``); live poses default to ``orb``
 file's default), ``groundtruth`` relays the bag's ground-truth topic.
 
 For each scene: render the sequence (``mdr sim``, skipped when ``DIR/sim_<scene>`` exists), run the
-offline pipeline (``mdr run``) four times -- ELAS-only baseline (temporal off, confidence off),
-temporal only, confidence only, full -- plus a peer, ``sgbm_tsdf`` (OpenCV StereoSGBM depth
+offline pipeline (``mdr run``) five times -- ELAS-only baseline (temporal off, confidence off),
+temporal only, confidence only, full, and full with ELAS on every pixel as the paper
+(``full_elas``: no weak-texture matcher) -- plus a peer, ``sgbm_tsdf`` (OpenCV StereoSGBM depth
 fused in Open3D's ScalableTSDFVolume, mdr_slam.eval.peer, on the same frames with the true
 poses), and score each map against the simulator's ground-truth map (``mdr eval map``: RMSE of
 estimated-to-truth distances, completeness at 5 cm over the whole map; and completeness,
@@ -65,6 +66,8 @@ CONFIGS = OrderedDict([
     ("temporal", {"temporal": True, "confidence": False}),
     ("confidence", {"temporal": False, "confidence": True}),
     ("full", {"temporal": True, "confidence": True}),
+    # the full system with ELAS on every pixel, as the paper (no weak-texture matcher)
+    ("full_elas", {"temporal": True, "confidence": True, "set": ["depth.weak_texture=off"]}),
 ])
 # peers: other mapping methods run on the same frames (python -m MODULE BAG --out DIR ...)
 PEERS = OrderedDict([
@@ -319,7 +322,7 @@ def run_ablation(args) -> int:
             argv += bag_input_argv(args)
             if args.max_frames:
                 argv += ["--max-frames", str(args.max_frames)]
-            for s in args.set:
+            for s in CONFIGS[c].get("set", []) + list(args.set):
                 argv += ["--set", s]
             runs.append(("%s_%s" % (scene, c), argv, d + ".log"))
     print("mdr bench: %d runs, %d at a time" % (len(runs), args.jobs), file=sys.stderr)
