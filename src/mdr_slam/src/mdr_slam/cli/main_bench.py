@@ -61,6 +61,7 @@ from ..nav import map_min_confidence, map_views
 from . import mdr_command
 from .main_run import _overrides, add_bag_input_arguments, bag_input_argv, bag_topics
 
+SURFACE_LABELS_ORDER = ("low_texture", "textured", "specular")
 CONFIGS = OrderedDict([
     ("elas_only", {"temporal": False, "confidence": False}),
     ("temporal", {"temporal": True, "confidence": False}),
@@ -534,6 +535,33 @@ def _markdown_in_range(report) -> list:
                 _pct(gr["recall_in_range_per_label"].get("low_texture")),
                 _pct(gr["precision"]), _pct(gr.get("free_precision")), gr.get("n_free_cells", "-"),
                 gr["route_occupied"], gr["route_cells"], ms))
+    labels = [k for k in SURFACE_LABELS_ORDER
+              if any(k in r.get("in_range", {}).get("per_label", {})
+                     for res in report["results"].values() for r in res.values())]
+    if not labels:
+        return lines
+    lines += ["", "Per surface label within %.0f m of the path: F-score, precision, completeness "
+              "and RMSE; x ELAS: the F-score over the ELAS-only baseline's of the same run." % (
+                  report["max_range_m"]),
+              "", "| scene | config | " + " | ".join(
+                  "%s F (x ELAS) | P | C | RMSE" % k.replace("_", "-") for k in labels) + " |",
+              "|---|---|" + "---|---|---|---|" * len(labels)]
+    for scene, res in report["results"].items():
+        base = res.get("elas_only", {}).get("in_range", {}).get("per_label", {})
+        for c, r in res.items():
+            if "in_range" not in r:
+                continue
+            pl = r["in_range"]["per_label"]
+            cells = []
+            for k in labels:
+                b = pl.get(k, {})
+                f0 = base.get(k, {}).get("fscore")
+                ratio = (" (%.2f)" % (b["fscore"] / f0)) if b.get("fscore") is not None and f0 \
+                    else ""
+                cells += [_f3(b.get("fscore")) + ratio, _pct(b.get("precision")),
+                          _pct(b.get("completeness")),
+                          "-" if b.get("rmse_m") is None else "%.3f" % b["rmse_m"]]
+            lines.append("| %s | %s | %s |" % (scene, c, " | ".join(cells)))
     return lines
 
 
