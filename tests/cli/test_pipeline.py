@@ -180,6 +180,16 @@ def test_run_refuses_bad_overrides_and_missing_input(tmp_path):
     assert r.returncode != 0 and "NODE.KEY=VALUE" in r.stdout + r.stderr
 
 
+def test_set_keeps_a_bare_off_for_a_word_parameter():
+    # YAML reads a bare off as false: a word parameter (weak_texture, densify) keeps the word,
+    # a switch gets the bool, a number refuses it
+    from mdr_slam.cli.main_run import _overrides
+    ov = _overrides(["depth.weak_texture=off", "depth.densify=off", "depth.temporal=off"])
+    assert ov["depth"] == {"weak_texture": "off", "densify": "off", "temporal": False}
+    with pytest.raises(SystemExit):
+        _overrides(["depth.tau=off"])
+
+
 def test_bench_ablation_report(small_sim, tmp_path):
     out = tmp_path / "bench"
     out.mkdir()

@@ -142,7 +142,13 @@ def _overrides(items):
                 try:
                     c.from_dict({top: {sub: v} if sub else v})
                 except ConfigError as e:
-                    raise SystemExit("--set %s: %s" % (it, e))
+                    try:   # YAML reads a bare off/on/no/yes as a bool: a word field keeps it
+                        if not isinstance(v, bool):
+                            raise
+                        c.from_dict({top: {sub: val} if sub else val})
+                        v = val
+                    except ConfigError:
+                        raise SystemExit("--set %s: %s" % (it, e))
         out[node][k] = v
     return out
 
