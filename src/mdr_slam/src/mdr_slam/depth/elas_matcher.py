@@ -128,7 +128,8 @@ def texture_gradient2(grey: np.ndarray, window: int = TEXTURE_WINDOW) -> np.ndar
 
 
 def disparity_sigma(grey: np.ndarray, sigma_d: float = 0.5, texture_k: float = 0.0,
-                    window: int = TEXTURE_WINDOW) -> Union[float, np.ndarray]:
+                    window: int = TEXTURE_WINDOW, g2: Optional[np.ndarray] = None
+                    ) -> Union[float, np.ndarray]:
     """Per-pixel disparity noise (px): sigma_d^2 + (texture_k / g)^2, g = RMS horizontal gradient
     (grey levels/px) over a ``window`` box, the matching window's texture along the epipolar line.
 
@@ -140,7 +141,8 @@ def disparity_sigma(grey: np.ndarray, sigma_d: float = 0.5, texture_k: float = 0
     """
     if texture_k <= 0:
         return float(sigma_d)
-    g2 = texture_gradient2(grey, window)
+    if g2 is None:   # the caller may have it already (texture_gradient2 of grey over window)
+        g2 = texture_gradient2(grey, window)
     return np.sqrt(np.float32(sigma_d) ** 2 +
                    np.float32(texture_k) ** 2 / np.maximum(g2, np.float32(1e-4))).astype(np.float32)
 

@@ -13,7 +13,8 @@ import numpy as np
 
 from ..camera import StereoCamera
 from .config import DepthConfig
-from .elas_matcher import ElasMatcher, disparity_sigma, measurement_from_disparity, to_gray8
+from .elas_matcher import (ElasMatcher, disparity_sigma, measurement_from_disparity,
+                           texture_gradient2, to_gray8)
 from .filter import DepthFilter, DepthOutput
 from .weak_texture import WeakTextureMatcher, combine_weak_texture
 
@@ -108,11 +109,12 @@ class StereoDepth:
             if weak_disp is not None:
                 weak_disp = mask_discontinuities(weak_disp, c.max_disparity_step,
                                                  c.discontinuity_radius)
-        sigma = disparity_sigma(grey, c.sigma_d, c.sigma_d_texture)
+        g2 = texture_gradient2(grey) if weak_disp is not None else None
+        sigma = disparity_sigma(grey, c.sigma_d, c.sigma_d_texture, g2=g2)
         if weak_disp is not None:
             disp, sigma = combine_weak_texture(disp, sigma, weak_disp, grey,
                                                c.weak_texture_gradient, c.sigma_d,
-                                               c.sigma_d_texture)
+                                               c.sigma_d_texture, g2=g2)
         return measurement_from_disparity(disp, self.camera, sigma, c.min_depth, c.max_depth)
 
     def process(self, stamp: float, left: np.ndarray, right: np.ndarray, T_map_cam: np.ndarray,

@@ -13,7 +13,7 @@ the variance of its larger window.
 """
 from __future__ import annotations
 
-from typing import Tuple, Union
+from typing import Optional, Tuple, Union
 
 import numpy as np
 
@@ -59,13 +59,15 @@ class WeakTextureMatcher:
 
 def combine_weak_texture(disp: np.ndarray, sigma: Union[float, np.ndarray], weak_disp: np.ndarray,
                          grey: np.ndarray, min_gradient: float, sigma_d: float, texture_k: float,
-                         window: int = WINDOW) -> Tuple[np.ndarray, np.ndarray]:
+                         window: int = WINDOW, g2: Optional[np.ndarray] = None
+                         ) -> Tuple[np.ndarray, np.ndarray]:
     """``(disparity, sigma)``: ``weak_disp`` and its sigma where the RMS x-gradient over 5x5 is
     below ``min_gradient``, ``disp`` and ``sigma`` elsewhere. The weak matcher's sigma is
     :func:`~mdr_slam.depth.elas_matcher.disparity_sigma`'s model over its own ``window``: the
     gradient energy of window^2 pixels instead of 5^2, so the texture term shrinks by
-    (5 / window)^2."""
-    g2 = texture_gradient2(grey)
+    (5 / window)^2. ``g2``: :func:`texture_gradient2` of ``grey`` if the caller has it."""
+    if g2 is None:
+        g2 = texture_gradient2(grey)
     weak = g2 < np.float32(min_gradient) ** 2
     g2w = texture_gradient2(grey, window)
     kw = np.float32(texture_k * TEXTURE_WINDOW / float(window))
