@@ -194,6 +194,21 @@ def test_repeated_noisy_laps_do_not_grow_the_map():
     assert mm["completeness"] >= 0.99                     # ... and the wall stays complete
 
 
+def test_the_duplicate_search_in_chunks_folds_as_in_one_batch(monkeypatch):
+    """The duplicate search runs in chunks of points (its queries would otherwise take hundreds
+    of MB on a large wall): chunks of 7 points fold exactly what one batch folds."""
+    import mdr_slam.fusion.cleaning as cleaning
+    out = {}
+    for chunk in (7, 10 ** 6):
+        monkeypatch.setattr(cleaning, "_DUP_CHUNK", chunk)
+        m = VoxelMap(0.02, grace=1.0)
+        sizes, _ = _noisy_wall_laps(m, 3, seed=3)
+        out[chunk] = (sizes, m.n_duplicates, np.sort(m.points(0), axis=0))
+    (s7, n7, p7), (s1, n1, p1) = out[7], out[10 ** 6]
+    assert n7 == n1 > 0 and s7 == s1
+    assert np.array_equal(p7, p1)
+
+
 def test_a_looping_bag_with_repeating_stamps_does_not_grow_the_map_either():
     """A looped bag replays its stamps every lap. The duplicate fold keeps the OLDER point of
     a surface; with the raw stamps a later lap's stray sample was no younger than the first lap's

@@ -20,6 +20,8 @@ _BLOCK27 = np.array(sorted([[ox, oy, oz] for ox in (-1, 0, 1) for oy in (-1, 0, 
 
 # the 5x5x5 block around a voxel
 _BLOCK125 = np.array([[ox, oy, oz] for ox in range(-2, 3) for oy in range(-2, 3) for oz in range(-2, 3)], np.int64)
+# points whose duplicate search runs at once: ~200 hash keys each, about 20 MB of queries
+_DUP_CHUNK = 2048
 
 
 class VoxelCleaning:
@@ -104,20 +106,32 @@ class VoxelCleaning:
         # voxels away
         pv = np.floor(P / self.voxel_size).astype(np.int64)
         frac = P / self.voxel_size - pv
-        gap2 = np.stack([frac + 1.0, frac, np.zeros_like(frac), 1.0 - frac, 2.0 - frac], axis=2) ** 2
-        o = _BLOCK125 + 2
-        d2 = gap2[:, 0, o[:, 0]] + gap2[:, 1, o[:, 1]] + gap2[:, 2, o[:, 2]]  # (n, 125)
         reach = max(np.hypot(self.dup_normal, self.dup_lateral), self.dup_radius) / self.voxel_size
-        near = d2 <= reach * reach
-        pi, bj, oi = np.nonzero(use[:, :, None] & near[:, None, :])
-        qi = pi
-        vox = pv[pi] + _BLOCK125[oi]
-        bins = B[pi, bj]
-        cand = self._find(np.concatenate([vox, bins[:, None]], axis=1).astype(np.int32))
-        f = (cand >= 0)
-        qi, cand = qi[f], cand[f]
-        f = (cand != slots[qi]) & (a["first_seen"][cand] < a["first_seen"][slots[qi]])
-        qi, cand = qi[f], cand[f]
+        o = _BLOCK125 + 2
+        first_seen = a["first_seen"][slots]
+        found_q, found_c = [], []
+        # in chunks: a point queries ~200 (voxel, bin) keys, so the queries of a whole batch
+        # (thousands of points come of age together on a large wall) would take hundreds of MB
+        for c0 in range(0, len(slots), _DUP_CHUNK):
+            c1 = min(c0 + _DUP_CHUNK, len(slots))
+            fc = frac[c0:c1]
+            gap2 = np.stack([fc + 1.0, fc, np.zeros_like(fc), 1.0 - fc, 2.0 - fc], axis=2) ** 2
+            d2 = gap2[:, 0, o[:, 0]] + gap2[:, 1, o[:, 1]] + gap2[:, 2, o[:, 2]]  # (n, 125)
+            pi, oi = np.nonzero(d2 <= reach * reach)
+            vox = (pv[c0:c1][pi] + _BLOCK125[oi]).astype(np.int32)
+            r, bj = np.nonzero(use[c0:c1][pi])      # every bin the point searches, per voxel
+            q = pi[r]
+            keys = np.empty((len(r), 4), np.int32)
+            keys[:, :3] = vox[r]
+            keys[:, 3] = B[c0:c1][q, bj]
+            cand = self._find(keys)
+            q = q + c0
+            f = cand >= 0
+            q, cand = q[f], cand[f]
+            f = (cand != slots[q]) & (a["first_seen"][cand] < first_seen[q])
+            found_q.append(q[f])
+            found_c.append(cand[f])
+        qi, cand = np.concatenate(found_q), np.concatenate(found_c)
         Nc = a["normal"][cand].astype(np.float64)
         d = P[qi] - a["pos"][cand]
         along = np.einsum("ij,ij->i", Nc, d)
@@ -133,7 +147,8 @@ class VoxelCleaning:
         qi, cand, dist = qi[ok], cand[ok], dist[ok]
         if len(qi) == 0:
             return 0
-        order = np.lexsort((dist, qi))  # the nearest older point of every duplicate
+        # the nearest older point of every duplicate (ties: the lowest slot)
+        order = np.lexsort((cand, dist, qi))
         qi, cand = qi[order], cand[order]
         _, first = np.unique(qi, return_index=True)
         src, dst = slots[qi[first]], cand[first]
