@@ -8,6 +8,7 @@ import sys
 import xml.etree.ElementTree as ET
 
 import pytest
+import yaml
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -104,6 +105,18 @@ def test_launch_prefix_args_reach_the_node_command():
     assert command("/depth_node", "depth_prefix:=nice -n 5").startswith("nice -n 5 ")
     assert not command("/pose_node", "depth_prefix:=nice -n 5").startswith("nice")
     assert command("/fusion_node", "fusion_prefix:=taskset -c 1").startswith("taskset -c 1 ")
+
+
+def test_the_weak_texture_argument_sets_the_live_depth_node():
+    """Live, the weak-texture matcher is off unless weak_texture:=sgbm (mdr run keeps the
+    default, sgbm)."""
+    def params(*args):
+        r = subprocess.run(["roslaunch", "--dump-params", "mdr_slam", "mdr.launch"] + list(args),
+                           capture_output=True, text=True)
+        assert r.returncode == 0, r.stderr
+        return yaml.safe_load(r.stdout)
+    assert params()["/depth_node/weak_texture"] == "off"
+    assert params("weak_texture:=sgbm")["/depth_node/weak_texture"] == "sgbm"
 
 
 @pytest.mark.parametrize("preset", ["sample", "euroc", "kitti"])

@@ -190,6 +190,22 @@ def test_set_keeps_a_bare_off_for_a_word_parameter():
         _overrides(["depth.tau=off"])
 
 
+def test_live_bench_set_reaches_the_launch_over_its_weak_texture_argument(tmp_path):
+    """mdr.launch sets the depth node's weak_texture after its parameter file, so the live
+    benchmark's --set passes it as the launch argument too."""
+    import argparse
+    import yaml
+    from mdr_slam.cli.bench_live import _param_files
+    args = argparse.Namespace(preset=None, out=str(tmp_path),
+                              set=["depth.weak_texture=sgbm", "depth.tau=0.02"])
+    launch = _param_files(args)
+    assert "weak_texture:=sgbm" in launch
+    with open(str(tmp_path / "depth.yaml")) as f:
+        assert yaml.safe_load(f)["tau"] == 0.02
+    args.set = ["depth.tau=0.02"]
+    assert not any(a.startswith("weak_texture:=") for a in _param_files(args))
+
+
 def test_bench_ablation_report(small_sim, tmp_path):
     out = tmp_path / "bench"
     out.mkdir()

@@ -264,6 +264,8 @@ def _param_files(args) -> list:
             continue
         params = load_params(node, preset)
         params.update(ov)
+        if node == "depth" and "weak_texture" in ov:   # the launch sets it after the file
+            out.append("weak_texture:=%s" % ov["weak_texture"])
         path = os.path.abspath(os.path.join(args.out, "%s.yaml" % node))
         with open(path, "w") as f:
             yaml.safe_dump(params, f)

@@ -274,6 +274,7 @@ class DepthNode:
                 if not self.matched:
                     continue
                 item = self.matched.popleft()
+                self.cv.notify_all()   # room in the queue: stage 1 may match the newest pair
             self._step("filter", self.filter_and_publish, item)
             update_diagnostics(self.updater)
 
@@ -292,7 +293,11 @@ class DepthNode:
         """Stage 1: the newest pair -> checks, conversion, ELAS -> the filter stage's queue."""
         while not rospy.is_shutdown():
             with self.cv:
-                while self.pending is None and not rospy.is_shutdown():
+                # a pair is matched only when the filter stage has room for it: matching pairs
+                # that the filter would drop as too old takes the CPU the tracker needs, while
+                # the newest pair keeps replacing the pending one meanwhile
+                while (self.pending is None or len(self.matched) >= self.max_matched) \
+                        and not rospy.is_shutdown():
                     self.cv.wait(0.2)
                 item, self.pending = self.pending, None
             if item is None:
