@@ -280,9 +280,11 @@ class PoseRelay:
         T = self._last_map_odom
         if T is None or self.tf is None:
             return
+        self.tf.sendTransform(self._map_odom_ahead(T))
+
+    def _map_odom_ahead(self, T_map_odom: np.ndarray):
         stamp = rospy.Time.now() + rospy.Duration(1.0 / MAP_ODOM_RATE)
-        self.tf.sendTransform(matrix_to_transform_stamped(T, stamp, self.p.map_frame,
-                                                          self.p.odom_frame))
+        return matrix_to_transform_stamped(T_map_odom, stamp, self.p.map_frame, self.p.odom_frame)
 
     def _odometry(self, stamp, T_map_base, T_map_odom):
         """/mdr/odom: the visual pose of base_link with covariance and twist (robot_localization
@@ -350,9 +352,12 @@ class PoseRelay:
         if self.wheel_odom:
             T_odom_base = self._odom_base_at(stamp)
             if T_odom_base is not None:
+                first = self._last_map_odom is None
                 self._last_map_odom = T_map_base @ inv_T(T_odom_base)
                 tfs.append(matrix_to_transform_stamped(self._last_map_odom, stamp,
                                                        p.map_frame, p.odom_frame))
+                if first:   # valid at the current time now, not only from the timer's next tick
+                    tfs.append(self._map_odom_ahead(self._last_map_odom))
         else:
             tfs.append(matrix_to_transform_stamped(T_map_odom, stamp, p.map_frame,
                                                    p.odom_frame))
