@@ -1473,3 +1473,37 @@ def test_eval_pose_sim_aliases_and_summary(root_dir):
     s = m.summary(res)
     assert "over 2 sequences: mean 0.800, max 1.20 (b), 1 above 1 %" in s
     assert "0.30, 0.70 (1 of 2 at most 0.5)" in s
+
+
+def test_a_weak_frame_asks_for_a_keyframe_while_local_mapping_is_busy():
+    """ORB-SLAM2's NeedNewKeyFrame with LocalMapping busy: a keyframe (with its BA interrupted)
+    only when tracking is weak against the reference keyframe (c1c) and fewer than 3 keyframes
+    wait. Weak is below WEAK_REF_RATIO of the reference's points (ORB-SLAM2: 0.25), so a fast
+    turn gets its keyframes before the map runs out."""
+    from types import SimpleNamespace
+    from mdr_slam.pose import tracking
+    from mdr_slam.pose.tracking import Tracking
+
+    calls = []
+    lm = SimpleNamespace(queue=0, accept_keyframes=lambda: False, queue_size=lambda: lm.queue,
+                         interrupt_ba=lambda: calls.append("interrupt"))
+    mp = SimpleNamespace(good_keyframes=lambda: [object()] * 5, mp_nobs=np.full(1000, 5),
+                         mp_bad=np.zeros(1000, bool))
+    tr = SimpleNamespace(map=mp, system=SimpleNamespace(local_mapping=lm),
+                         cfg=SimpleNamespace(max_frames=20), last_reloc_frame_id=-1000,
+                         last_kf_frame_id=99, low_texture=lambda f: False, n_matches_inliers=0,
+                         ref_kf=SimpleNamespace(valid_mp_ids=lambda bad: np.arange(400)))
+    # 500 far stereo points, all tracked: no close-point rule
+    frame = SimpleNamespace(id=100, depth=np.full(500, 50.0), th_depth=35.0,
+                            mp_ids=np.arange(500))
+
+    def need(inliers, queue=0):
+        tr.n_matches_inliers, lm.queue = inliers, queue
+        return Tracking.need_new_keyframe(tr, frame)
+
+    weak = int(400 * tracking.WEAK_REF_RATIO) - 10
+    assert tracking.WEAK_REF_RATIO > 0.25
+    assert need(weak) and calls == ["interrupt"]
+    assert not need(weak, queue=3)                  # LocalMapping too far behind
+    assert not need(int(400 * tracking.WEAK_REF_RATIO) + 10)   # not weak: wait for an idle one
+    assert need(90)                                 # ORB-SLAM2's own 0.25 still holds

@@ -35,6 +35,8 @@ __all__ = ["Tracking", "NOT_INITIALIZED", "OK", "LOST", "RELOCALIZED"]
 MIN_INIT_POINTS = 100          # stereo points needed to initialise (StereoInitialization: 500)
 MIN_FRAMES = 0                 # frames after a keyframe before an idle LocalMapping may take one (mMinFrames: 0)
 TH_REF_RATIO = 0.75            # keyframe when inliers < this x the reference keyframe's points (thRefRatio)
+WEAK_REF_RATIO = 0.5           # ... even while LocalMapping is busy below this x (c1c: 0.25); live, fast
+                               # turns past far walls lost track before an idle LocalMapping came
 MIN_CLOSE_POINTS = 100         # a new keyframe adds far stereo points only past this many close ones
                                # (CreateNewKeyFrame: 100)
 CLOSE_TRACKED_RATIO = 0.45     # also a keyframe (LocalMapping idle) when fewer than this share of the
@@ -805,7 +807,7 @@ class Tracking:
         th_ref = 0.4 if n_kfs < 2 else TH_REF_RATIO
         c1a = frame.id >= self.last_kf_frame_id + max_frames
         c1b = frame.id >= self.last_kf_frame_id + min_frames and idle
-        c1c = self.n_matches_inliers < n_ref * 0.25 or need_close
+        c1c = self.n_matches_inliers < n_ref * WEAK_REF_RATIO or need_close
         c2 = (self.n_matches_inliers < n_ref * th_ref or need_close or sparse) and \
             self.n_matches_inliers > (10 if low else 15)
         if (c1a or c1b or c1c) and c2:
