@@ -12,9 +12,9 @@ from conftest import wait_for
 pytestmark = pytest.mark.ros
 
 
-def _stereo_rig(rospy, prefix, cam, subs, node, queue_size=20):
-    """Publishers of a stereo pair and its camera_info under ``prefix``, once they and ``subs``
-    are connected; returns send(left, right, stamp)."""
+def _stereo_rig(rospy, prefix, cam, subs, node, queue_size=20, frame="cam"):
+    """Publishers of a stereo pair and its camera_info under ``prefix`` (in ``frame``), once they
+    and ``subs`` are connected; returns send(left, right, stamp)."""
     from mdr_slam import conversions as cv
     from sensor_msgs.msg import CameraInfo, Image
     pubs = {n: rospy.Publisher("%s/%s" % (prefix, n), t, queue_size=queue_size) for n, t in
@@ -22,15 +22,15 @@ def _stereo_rig(rospy, prefix, cam, subs, node, queue_size=20):
              ("right/info", CameraInfo))}
     assert wait_for(lambda: all(p.get_num_connections() > 0 for p in pubs.values()) and
                     all(s.get_num_connections() > 0 for s in subs), 30), node.output()
-    li = cv.model_to_camera_info(cam.left, frame_id="cam")
-    ri = cv.model_to_camera_info(cam.right, frame_id="cam")
+    li = cv.model_to_camera_info(cam.left, frame_id=frame)
+    ri = cv.model_to_camera_info(cam.right, frame_id=frame)
 
     def send(left, right, stamp):
         for msg, name in ((li, "left/info"), (ri, "right/info")):
             msg.header.stamp = stamp
             pubs[name].publish(msg)
-        pubs["left/image"].publish(cv.numpy_to_image(left, "mono8", stamp, "cam"))
-        pubs["right/image"].publish(cv.numpy_to_image(right, "mono8", stamp, "cam"))
+        pubs["left/image"].publish(cv.numpy_to_image(left, "mono8", stamp, frame))
+        pubs["right/image"].publish(cv.numpy_to_image(right, "mono8", stamp, frame))
     return send
 
 
@@ -112,6 +112,54 @@ def test_orb_node_tracks_synthetic_stream(rospy_client, start_process, tmp_path,
     # trajectory on shutdown
     node.stop()
     assert os.path.exists(traj_path) and np.loadtxt(traj_path).shape == (len(frames), 8)
+
+
+def test_frames_before_the_camera_mount_is_in_tf_are_tracked_and_published_in_base_map(
+        rospy_client, start_process):
+    """The robot's base -> camera transform reaches tf after the first images (robot_state_publisher
+    starting): the node tracks meanwhile instead of waiting, and once the transform comes it
+    publishes every held result, in the map that is base_link where tracking started."""
+    rospy = rospy_client
+    import tf2_ros
+    from mdr_slam import conversions as cv
+    from mdr_slam.camera import StereoCamera
+    from mdr_slam.geometry import inv_T, parse_transform
+    from mdr_slam.pose.synthetic import BoxRoom, orbit_trajectory
+    from mdr_slam_msgs.msg import TrackingState
+    from geometry_msgs.msg import PoseStamped
+
+    cam = StereoCamera.from_rectified(480, 320, 300.0, 300.0, 240.0, 160.0, 0.12)
+    room = BoxRoom((3.0, 1.5, 3.0), tex_size=768, seed=3)
+    poses = orbit_trajectory(10, radius=1.0, arc=np.pi / 6)
+    frames = [room.render_stereo(T, cam) for T in poses]
+    A = parse_transform(_MOUNT)
+    node = start_process(["rosrun", "mdr_slam", "pose_node", "_source:=orb", "_threads:=false",
+                          "_n_features:=1000", "__name:=orb_late_tf",
+                          "left/image:=/l/left/image", "right/image:=/l/right/image",
+                          "left/camera_info:=/l/left/info", "right/camera_info:=/l/right/info"],
+                         "orb_late_tf")
+    got, states = [], []
+    subs = [rospy.Subscriber("/mdr/pose", PoseStamped, got.append),
+            rospy.Subscriber("/mdr/tracking_state", TrackingState, states.append)]
+    # a frame of its own: the latched transform outlives this test in the shared client
+    rig = _stereo_rig(rospy, "/l", cam, subs, node, queue_size=100, frame="cam_late")
+    static = tf2_ros.StaticTransformBroadcaster()
+    base = rospy.Time.now()
+    for i, (l, r) in enumerate(frames):
+        rig(l, r, base + rospy.Duration(0.1 * (i + 1)))
+        if i == 3:   # 0.4 s after the first image: within the node's wait for it
+            static.sendTransform(cv.matrix_to_transform_stamped(A, rospy.Time(0), "base_link",
+                                                                "cam_late"))
+        rospy.sleep(0.1)
+    assert wait_for(lambda: len(states) >= len(frames), 20), (len(states), node.output()[-3000:])
+    assert wait_for(lambda: len(got) >= len(frames), 5), len(got)
+    assert [s.state for s in states].count(TrackingState.OK) == len(frames)
+    assert "from tf" in node.output()
+    np.testing.assert_allclose(cv.pose_stamped_to_matrix(got[0]), A, atol=1e-6)   # map = base
+    T_true = A @ inv_T(poses[0]) @ poses[-1]
+    assert np.linalg.norm(cv.pose_stamped_to_matrix(got[-1])[:3, 3] - T_true[:3, 3]) < 0.05
+    assert [m.header.stamp for m in got] == sorted(m.header.stamp for m in got)
+    static.pub_tf.unregister()
 
 
 def test_latest_slot_keeps_the_newest_and_counts_drops():

@@ -8,6 +8,7 @@ With ``orb``, a saved map can be loaded and reused (``~load_map``, ``~localizati
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 import threading
 import time
@@ -46,8 +47,10 @@ PATH_MIN_TRANSLATION = 0.05  # m: a pose joins /mdr/path once the camera moved t
 PATH_MIN_ROTATION_DEG = 5.0  # ... or turned this much since the last one
 PIPELINE_FRAMES = True      # make frame N+1 (ORB, stereo) while frame N is being tracked
 DEFAULT_CAMERA_FRAME = "camera_left_optical_frame"   # the simulator's; when nothing names one
-BASE_TF_WAIT = 1.0        # s (wall) the first frame waits for tf base <- camera before a fallback ...
+BASE_TF_WAIT = 1.0        # s (wall) from the first result, waiting for tf base <- camera before a
+                          # fallback (tracking goes on; its results are published once known) ...
 BASE_TF_WAIT_GIVEN = 0.2  # ... and when ~base_to_camera gives one (then tf is only checked)
+HELD_POLL = 0.05          # s: how often a tracking thread without frames looks for that transform
 MAP_ODOM_RATE = 20.0      # Hz: map -> odom re-sent (future-dated one period) with wheel odometry,
                           # so tf stays valid while tracking is LOST or the camera stalls
 ODOM_LOOKUP_TIMEOUT = 0.05  # s to wait for the robot's odom -> base_link at an image stamp
@@ -82,6 +85,7 @@ class PoseRelay:
         self.p = p
         self.T_base_cam = None             # known once the camera frame is resolved in tf
         self.camera_frame = None
+        self._camera_deadline = None       # monotonic end of the wait for it in tf
         self.pub_pose = rospy.Publisher("mdr/pose", PoseStamped, queue_size=10)
         self.pub_odom = rospy.Publisher("mdr/odom", Odometry, queue_size=10)
         self.pub_path = rospy.Publisher("mdr/path", Path, queue_size=1, latch=True)
@@ -128,11 +132,11 @@ class PoseRelay:
                           "%s -> %s", authority, self.p.odom_frame, self.p.base_frame,
                           self.p.map_frame, self.p.odom_frame)
 
-    def resolve_camera(self, frame: str) -> bool:
-        """Find T_base_cam for the camera frame ``frame`` (True once known). tf first, waiting up
-        to BASE_TF_WAIT s on the first frame (a bag's /tf_static, robot_state_publisher starting);
+    def resolve_camera(self, frame: str, wait: bool = True) -> bool:
+        """Find T_base_cam for the camera frame ``frame`` (True once known). tf first, for up to
+        BASE_TF_WAIT s from the first call (a bag's /tf_static, robot_state_publisher starting);
         without it the user's ``base_to_camera`` or identity is published, from base to the root
-        of the camera's tree."""
+        of the camera's tree. ``wait`` False: one look, False while the wait lasts."""
         if self.T_base_cam is not None:
             if frame != self.camera_frame:
                 self.warn("camframe", "pose_node: image frame_id %r differs from %r (the first "
@@ -141,7 +145,9 @@ class PoseRelay:
         p = self.p
         base = p.base_frame
         given = bool(str(p.base_to_camera).strip())
-        deadline = time.monotonic() + (BASE_TF_WAIT_GIVEN if given else BASE_TF_WAIT)
+        if self._camera_deadline is None:
+            self._camera_deadline = time.monotonic() + (BASE_TF_WAIT_GIVEN if given
+                                                        else BASE_TF_WAIT)
         while True:
             try:
                 ts = self.tf_buffer.lookup_transform(base, frame, rospy.Time(0))
@@ -149,8 +155,10 @@ class PoseRelay:
                 rospy.loginfo("pose_node: %s -> %s from tf", base, frame)
                 return True
             except (tf2_ros.TransformException, rospy.ROSTimeMovedBackwardsException):
-                if time.monotonic() > deadline or rospy.is_shutdown():
+                if time.monotonic() > self._camera_deadline or rospy.is_shutdown():
                     break
+                if not wait:
+                    return False
                 time.sleep(0.05)
         T = parse_transform(p.base_to_camera)
         root = frame_root(self.tf_buffer, frame)
@@ -426,6 +434,17 @@ _STATE_CODES = {"NOT_INITIALIZED": 0, "OK": 1, "LOST": 2, "RELOCALIZED": 3}
 _REASON_CODES = {"new_keyframe": 0, "local_ba": 1, "loop_closure": 2, "full_map": 3}
 
 
+def _moved(res, D: np.ndarray):
+    """``res`` with its map-frame poses moved by ``D`` (a change of the map frame)."""
+    def kfs(d):
+        return None if d is None else {k: (s, D @ T) for k, (s, T) in d.items()}
+    corr = res.corrections
+    return dataclasses.replace(
+        res, T_map_cam=None if res.T_map_cam is None else D @ res.T_map_cam,
+        corrections=None if corr is None else (corr[0], corr[1], kfs(corr[2])),
+        new_keyframes=kfs(res.new_keyframes))
+
+
 class OrbNode(PoseMapServices):
     """``source: orb``: stereo images (+ camera_info or ``calib``) -> mdr_slam.pose.System ->
     PoseRelay (pose, odom, path, tf), /mdr/tracking_state, /mdr/keyframes, ~save_trajectory."""
@@ -442,6 +461,11 @@ class OrbNode(PoseMapServices):
         self.kf_poses = {}                 # last published T_map_kf per keyframe id
         self.last_stamp = None
         self.last_state = "NOT_INITIALIZED"
+        self.camera_frame_id = None
+        # tracking starts before base -> camera is in tf: its results wait here (at most the
+        # wait's frames), in a system whose world is the first camera until it is anchored
+        self.held = []
+        self.unanchored = None
         self.clock = ClockWatch()          # ROS time jumping back (bag loop): a new timeline
         self.lock = threading.Lock()
         self.pub_state = rospy.Publisher("mdr/tracking_state", TrackingState, queue_size=10)
@@ -459,13 +483,14 @@ class OrbNode(PoseMapServices):
         # while frame N is tracked: the two stages overlap on two cores instead of adding up
         self.slot = LatestSlot(int(p.max_pending))
         self.frames = LatestSlot(int(p.max_pending)) if PIPELINE_FRAMES else None
-        self.worker = threading.Thread(target=self._serve, args=(self.slot, self.process),
-                                       name="frames", daemon=True)
+        self.worker = threading.Thread(
+            target=self._serve, name="frames", daemon=True,
+            args=(self.slot, self.process, None if PIPELINE_FRAMES else self._idle))
         self.worker.start()
         self.tracker = None
         if self.frames is not None:
-            self.tracker = threading.Thread(target=self._serve, args=(self.frames, self.track),
-                                            name="tracking", daemon=True)
+            self.tracker = threading.Thread(target=self._serve, name="tracking", daemon=True,
+                                            args=(self.frames, self.track, self._idle))
             self.tracker.start()
         self.input = StereoInput("pose_node", self.on_stereo, self.warn,
                                  float(p.sync_tolerance), str(p.image_transport),
@@ -514,11 +539,14 @@ class OrbNode(PoseMapServices):
             self.warn("busy", "tracking busy: the oldest waiting stereo pair was dropped",
                       level="info")
 
-    def _serve(self, slot, handle) -> None:
-        """A worker thread: ``handle(*item)`` for each item of ``slot`` until it closes."""
+    def _serve(self, slot, handle, idle=None) -> None:
+        """A worker thread: ``handle(*item)`` for each item of ``slot`` until it closes; ``idle()``
+        when none came (within HELD_POLL s while results are held)."""
         while not slot.closed and not rospy.is_shutdown():
-            item = slot.get(timeout=0.5)
+            item = slot.get(timeout=HELD_POLL if idle is not None and self.held else 0.5)
             if item is None:
+                if idle is not None:
+                    idle()
                 continue
             try:
                 handle(*item)
@@ -544,8 +572,8 @@ class OrbNode(PoseMapServices):
                       % (left.shape[::-1], right.shape[::-1], w, h))
             return
         frame_id = self.p.camera_frame or left_msg.header.frame_id or DEFAULT_CAMERA_FRAME
-        if not self.relay.resolve_camera(frame_id):
-            return
+        if self.camera_frame_id is None:   # resolved in tf by the tracking thread (publish)
+            self.camera_frame_id = frame_id
         t = stamp.to_sec()
         jumped = self.clock.jumped()
         if self.last_stamp is not None and t == self.last_stamp:
@@ -577,6 +605,7 @@ class OrbNode(PoseMapServices):
                     self.tracker_cfg = self.tracker_cfg.replace(backend="mdr")
                     self.system = System(cam, self.tracker_cfg, **args)
                 self._load_start_map(self.system)
+                self.unanchored = self.system if self.relay.T_base_cam is None else None
         system = self.system
         left, right = cam.rectify(left, right)
         try:
@@ -605,6 +634,46 @@ class OrbNode(PoseMapServices):
 
     # ------------------------------------------------------------------ output
     def publish(self, stamp, res) -> None:
+        """Publish a result, or hold it while base -> camera is not yet known (the tracking
+        thread, under ``lock``)."""
+        if self.held or self.unanchored is not None or self.relay.T_base_cam is None:
+            self.held.append((self.system, stamp, res))
+            self._release_held()
+            return
+        self._publish(stamp, res)
+
+    def _release_held(self) -> bool:
+        """Once base -> camera is known (or its wait is over): anchor the map and publish the
+        held results, moved into it (under ``lock``)."""
+        if self.relay.T_base_cam is None and \
+                not self.relay.resolve_camera(self.camera_frame_id, wait=False):
+            return False
+        D = self._anchor()
+        held, self.held = self.held, []
+        for system, stamp, res in held:
+            if system is self.system:   # not those of a map restarted meanwhile
+                self._publish(stamp, _moved(res, D))
+        return True
+
+    def _idle(self) -> None:
+        """The tracking thread without frames: results held for tf go out when its wait ends."""
+        if self.held:
+            with self.lock:
+                if self.held:
+                    self._release_held()
+
+    def _anchor(self) -> np.ndarray:
+        """Put the map frame where REP-105 wants it once base -> camera is known: the system
+        started with its world at the first camera. Returns the change applied to the poses it
+        already returned (identity when a loaded map gave the frame)."""
+        system, self.unanchored = self.unanchored, None
+        if system is None or system is not self.system or getattr(system, "map_loaded", False):
+            return np.eye(4)
+        old = np.asarray(system.T_map_world, float)
+        system.T_map_world = np.asarray(self.relay.T_base_cam, float).copy()
+        return system.T_map_world @ inv_T(old)
+
+    def _publish(self, stamp, res) -> None:
         st = TrackingState()
         st.header.stamp = stamp
         st.header.frame_id = self.p.map_frame
