@@ -716,6 +716,42 @@ def test_sparse_bundle_adjust_matches_dense():
     assert not inl[::47].any() and inl.mean() > 0.95
 
 
+def test_the_global_bundle_adjustment_keeps_one_iteration_of_blocks_in_memory():
+    """The global BA's child process holds the solve's arrays; an iteration's per-observation
+    blocks (Jacobians, W, the Schur complement) are freed before the next one's are made. Two
+    generations alive at once measured 2535 bytes per observation here, one 1936."""
+    import tracemalloc
+    from mdr_slam.pose.optimizer import bundle_adjust_sparse
+    rng = np.random.RandomState(4)
+    C, M = 30, 6000
+    P = np.column_stack([rng.uniform(-3, 3, M), rng.uniform(-1, 1, M), rng.uniform(2, 8, M)])
+    Ts = np.array([inv_T(make_T(Rotation.from_rotvec([0, 0.01 * c, 0]).as_matrix(),
+                                [0.1 * c, 0, 0.05 * c])) for c in range(C)])
+    seen = rng.rand(C, M) < 0.25
+    ci, pi = np.nonzero(seen)
+    Pc = (Ts[ci, :3, :3] @ P[pi][:, :, None])[:, :, 0] + Ts[ci, :3, 3]
+    bf = CAM.fx * CAM.baseline
+    u = CAM.fx * Pc[:, 0] / Pc[:, 2] + CAM.cx + rng.randn(len(ci)) * 0.5
+    v = CAM.fy * Pc[:, 1] / Pc[:, 2] + CAM.cy + rng.randn(len(ci)) * 0.5
+    obs = np.column_stack([u, v, u - bf / Pc[:, 2]])
+    Tn = Ts.copy()
+    for c in range(1, C):
+        Tn[c] = make_T(Rotation.from_rotvec(rng.randn(3) * 0.005).as_matrix(),
+                       rng.randn(3) * 0.02) @ Ts[c]
+    Pn = P + rng.randn(*P.shape) * 0.03
+    intr = (CAM.fx, CAM.fy, CAM.cx, CAM.cy, bf)
+    tracemalloc.start()
+    try:
+        Tsp, _, _ = bundle_adjust_sparse(Tn, np.arange(C) == 0, Pn, ci, pi, obs,
+                                           np.ones(len(u), bool), np.ones(len(u)), intr, 6)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    start = np.abs(Tn[:, :3, 3] - Ts[:, :3, 3]).max()
+    assert np.abs(Tsp[:, :3, 3] - Ts[:, :3, 3]).max() < 0.5 * start   # it solved
+    assert peak / len(u) < 2200, peak / len(u)
+
+
 # ---------------------------------------------------------------------- local mapping cost
 def _two_keyframes(room, sequence, a=0, b=5):
     """A map with two keyframes of the room at their true poses, no map points yet, connected in

@@ -159,10 +159,8 @@ def _robust_lm(Ts, fixed, P, cam_idx, pt_idx, obs, stereo, info, intr, iteration
     ovi = np.nonzero(cvar[cam_idx] >= 0)[0]
     oc = cvar[cam_idx[ovi]]
     pt_ov = pt_idx[ovi]
-    rows = (6 * oc[:, None, None] + np.arange(6)[None, :, None]) + np.zeros((1, 1, 3), np.int64)
-    cols = (3 * pt_ov[:, None, None] + np.arange(3)[None, None, :]) + np.zeros((1, 6, 1), np.int64)
-    rows, cols = rows.ravel(), cols.ravel()
-    w_flat = rows * (3 * M) + cols
+    w_flat = ((6 * oc[:, None, None] + np.arange(6)[None, :, None]) * (3 * M) +
+              3 * pt_ov[:, None, None] + np.arange(3)[None, None, :]).ravel()
     cam_ar = np.arange(nv)
     sum_pt = _block_summer(pt_idx, M)
     sum_cam = _block_summer(oc, nv)
@@ -172,6 +170,7 @@ def _robust_lm(Ts, fixed, P, cam_idx, pt_idx, obs, stereo, info, intr, iteration
         w_key, w_inv = np.unique(w_flat, return_inverse=True)
         w_cols = w_key % (3 * M)
         w_indptr = np.searchsorted(w_key // (3 * M), np.arange(6 * nv + 1))
+        w_flat = None
 
         def w_csr(vals):
             data = np.bincount(w_inv, weights=vals.ravel(), minlength=len(w_key))
@@ -183,6 +182,9 @@ def _robust_lm(Ts, fixed, P, cam_idx, pt_idx, obs, stereo, info, intr, iteration
         if abort is not None and it > 0 and abort():
             break   # a new keyframe is waiting (ORB-SLAM2 mbAbortBA): keep the steps taken so far
         e, Pc, R = cur
+        # the last iteration's blocks go before this one's are made: two generations of them
+        # alive at once were most of a global BA's memory
+        Jc = Jl = JlT = JcT = Wb = Wd = WVd = S = S4 = Vinv = nxt = None
         if it == half:   # ORB-SLAM2: optimise, drop outliers, optimise again
             _, chi2 = _huber_cost(e, info, delta, active)
             active &= (chi2 <= chi2_th) & (Pc[:, 2] > 0)
@@ -217,7 +219,8 @@ def _robust_lm(Ts, fixed, P, cam_idx, pt_idx, obs, stereo, info, intr, iteration
                 # Schur complement S = Hcc - W V^-1 W^T (V block diagonal: per-point 3x3)
                 if sparse:
                     WVd = w_csr(Wb @ Vinv[pt_ov])
-                    S = -(WVd @ Wd.T).toarray()
+                    S = (WVd @ Wd.T).toarray()
+                    np.negative(S, out=S)
                 else:
                     WVd = np.zeros((6 * nv, 3 * M))
                     WVd.ravel()[w_flat] = (Wb @ Vinv[pt_ov]).ravel()
