@@ -752,6 +752,43 @@ def test_the_global_bundle_adjustment_keeps_one_iteration_of_blocks_in_memory():
     assert peak / len(u) < 2200, peak / len(u)
 
 
+def test_keyframe_culling_drops_a_keyframe_whose_close_points_others_see_at_its_scale():
+    """ORB-SLAM2 KeyFrameCulling (stereo): a covisible keyframe goes when more than 90 % of its
+    close points are seen by at least 3 other keyframes at the same or a finer scale (octave at
+    most one above); keyframe 0 and the new keyframe stay."""
+    from types import SimpleNamespace
+    from mdr_slam.pose.local_mapping import LocalMapping
+
+    def kf(i, ids, octave=0, depth=2.0, n_points=200):
+        mp_ids = -np.ones(n_points + 5, np.int64)
+        mp_ids[: len(ids)] = ids
+        return SimpleNamespace(id=i, bad=False, mp_ids=mp_ids, th_depth=4.0,
+                               depth=np.full(n_points + 5, depth),
+                               octave=np.full(n_points + 5, octave, np.int64), connections={})
+
+    def run(other_octave, seen=96, close=2.0):
+        a = kf(1, np.arange(100), depth=close)
+        others = [kf(i, np.r_[np.arange(seen), 100 + np.arange(50)], other_octave)
+                  for i in (2, 3, 4)]
+        new = kf(5, np.arange(100))
+        zero = kf(0, np.arange(100))
+        for k in [a, zero] + others:
+            k.connections = {o.id: 1 for o in [a, zero] + others if o is not k}
+        keyframes = {k.id: k for k in [zero, a, new] + others}
+        culled = []
+        mp = SimpleNamespace(n=150, keyframes=keyframes, mp_bad=np.zeros(150, bool),
+                             mp_nobs=np.full(150, 4), set_bad_keyframe=culled.append,
+                             best_covisibles=lambda k, n: [zero, a] + others + [new])
+        n = LocalMapping.keyframe_culling(SimpleNamespace(map=mp), new)
+        assert n == len(culled)
+        return [k.id for k in culled]
+
+    assert run(other_octave=1) == [1]            # one octave coarser still counts
+    assert run(other_octave=2) == []             # two coarser do not
+    assert run(other_octave=0, seen=90) == []    # 90 %: not more than 90 %
+    assert run(other_octave=0, close=5.0) == []  # far points do not count (none close)
+
+
 # ---------------------------------------------------------------------- local mapping cost
 def _two_keyframes(room, sequence, a=0, b=5):
     """A map with two keyframes of the room at their true poses, no map points yet, connected in

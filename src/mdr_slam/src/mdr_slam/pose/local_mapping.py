@@ -319,6 +319,7 @@ class LocalMapping:
         mp = self.map
         n_culled = 0
         local = mp.best_covisibles(kf, 30)
+        lookup = np.full(mp.n + 1, -1, dtype=np.int64)   # point id -> index in k; [-1]: none
         for k in local:
             if k.id == 0 or k.bad or k is kf:
                 continue
@@ -330,19 +331,19 @@ class LocalMapping:
             ids = k.mp_ids[sel]
             lvl = k.octave[sel]
             sel_ok = mp.mp_nobs[ids] > 3
-            count = np.zeros(len(ids), dtype=np.int32)
-            lookup = np.full(mp.n, -1, dtype=np.int64)
-            lookup[ids] = np.arange(len(ids))
-            for kid in k.connections:
-                o = mp.keyframes.get(kid)
-                if o is None or o.bad:
-                    continue
-                m = o.mp_ids >= 0
-                pos = lookup[o.mp_ids[m]]
+            count = np.zeros(len(ids), dtype=np.int64)
+            others = [o for o in (mp.keyframes.get(kid) for kid in k.connections)
+                      if o is not None and not o.bad]
+            if others:
+                # every connection's observations in one gather (a point k saw twice counts at
+                # its last keypoint)
+                lookup[ids] = np.arange(len(ids))
+                pos = lookup[np.concatenate([o.mp_ids for o in others])]
                 hit = pos >= 0
                 pos = pos[hit]
-                finer = o.octave[np.nonzero(m)[0][hit]] <= lvl[pos] + 1
-                np.add.at(count, pos[finer], 1)
+                finer = np.concatenate([o.octave for o in others])[hit] <= lvl[pos] + 1
+                count = np.bincount(pos[finer], minlength=len(ids))
+                lookup[ids] = -1
             redundant = int(np.count_nonzero(sel_ok & (count >= 3)))
             if redundant > 0.9 * len(ids):
                 mp.set_bad_keyframe(k)
