@@ -44,7 +44,7 @@ from ..geometry import inv_T, rotation_angle
 from .ba_process import BAWorker
 from .matcher import ORBmatcher, _unique_by
 from .optimizer import Optimizer, global_bundle_adjustment, normalize_pose
-from .orb import TH_LOW, hamming_matrix
+from .orb import TH_LOW, hamming_knn2
 from .vocabulary import KeyFrameDatabase, bow_score, load_vocabulary
 
 __all__ = ["LoopClosing", "ransac_se3", "rotation_sigma_deg", "loop_rotation_check"]
@@ -558,13 +558,11 @@ class LoopClosing:
         b = b[~mp.mp_bad[cand.mp_ids[b]]]
         if len(a) < self.min_inliers or len(b) < self.min_inliers:
             return None
-        D = hamming_matrix(kf.desc[a], cand.desc[b])
-        part = np.partition(D, 1, axis=1) if D.shape[1] > 1 else np.concatenate([D, D + 256], 1)
-        j = np.argmin(D, axis=1)
-        ok = (part[:, 0] <= TH_LOW) & (part[:, 0] < 0.75 * part[:, 1])
+        d, nn = hamming_knn2(kf.desc[a], cand.desc[b])   # in C++, out of the interpreter lock
+        ok = (d[:, 0] <= TH_LOW) & (d[:, 0] < 0.75 * d[:, 1])
         i = np.nonzero(ok)[0]
-        j = j[ok]
-        u = _unique_by(j, part[i, 0])
+        j = nn[ok, 0]
+        u = _unique_by(j, d[i, 0])
         i, j = i[u], j[u]
         if len(i) < self.min_inliers:
             return None
