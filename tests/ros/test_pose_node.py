@@ -38,6 +38,27 @@ def _stereo_rig(rospy, prefix, cam, subs, node, queue_size=20, frame="cam"):
 _MOUNT = "0.2 0 1.2 -0.5416 0.5416 -0.4545 0.4545"
 
 
+def _orbit(n, arc):
+    """The small rectified camera, ``n`` poses on an orbit of ``arc`` rad in a textured box
+    room and their rendered stereo pairs."""
+    from mdr_slam.camera import StereoCamera
+    from mdr_slam.pose.synthetic import BoxRoom, orbit_trajectory
+    cam = StereoCamera.from_rectified(480, 320, 300.0, 300.0, 240.0, 160.0, 0.12)
+    room = BoxRoom((3.0, 1.5, 3.0), tex_size=768, seed=3)
+    poses = orbit_trajectory(n, radius=1.0, arc=arc)
+    return cam, poses, [room.render_stereo(T, cam) for T in poses]
+
+
+def _orb_node(start_process, name, prefix, *args):
+    """A serial ORB pose node ``name`` on the stereo topics under ``prefix``."""
+    return start_process(["rosrun", "mdr_slam", "pose_node", "_source:=orb", "_threads:=false",
+                          "_n_features:=1000", "__name:=" + name, *args,
+                          "left/image:=%s/left/image" % prefix,
+                          "right/image:=%s/right/image" % prefix,
+                          "left/camera_info:=%s/left/info" % prefix,
+                          "right/camera_info:=%s/right/info" % prefix], name)
+
+
 @pytest.mark.parametrize("mount", ["", _MOUNT], ids=["camera_map", "base_map"])
 def test_orb_node_tracks_synthetic_stream(rospy_client, start_process, tmp_path, mount):
     """With ``base_to_camera`` the ORB node's map is base_link where tracking starts (REP-105):
@@ -46,25 +67,16 @@ def test_orb_node_tracks_synthetic_stream(rospy_client, start_process, tmp_path,
     rospy = rospy_client
     from mdr_slam.geometry import parse_transform
     from mdr_slam import conversions as cv
-    from mdr_slam.camera import StereoCamera
     from mdr_slam.geometry import inv_T
-    from mdr_slam.pose.synthetic import BoxRoom, orbit_trajectory
     from mdr_slam_msgs.msg import KeyFrameArray, TrackingState
     from mdr_slam_msgs.srv import SaveTrajectory
     from geometry_msgs.msg import PoseStamped
 
-    cam = StereoCamera.from_rectified(480, 320, 300.0, 300.0, 240.0, 160.0, 0.12)
-    room = BoxRoom((3.0, 1.5, 3.0), tex_size=768, seed=3)
-    poses = orbit_trajectory(12, radius=1.0, arc=np.pi / 4)
-    frames = [room.render_stereo(T, cam) for T in poses]
+    cam, poses, frames = _orbit(12, np.pi / 4)
     traj_path = str(tmp_path / "exit.txt")
     A = parse_transform(mount)
-    node = start_process(["rosrun", "mdr_slam", "pose_node", "_source:=orb", "_threads:=false", "_n_features:=1000",
-                          "__name:=orb_test", "_trajectory_path:=" + traj_path,
-                          *(["_base_to_camera:=" + mount] if mount else []),
-                          "left/image:=/t/left/image", "right/image:=/t/right/image",
-                          "left/camera_info:=/t/left/info", "right/camera_info:=/t/right/info"],
-                         "orb")
+    node = _orb_node(start_process, "orb_test", "/t", "_trajectory_path:=" + traj_path,
+                     *(["_base_to_camera:=" + mount] if mount else []))
     got, states, kfs = [], [], []
     subs = [rospy.Subscriber("/mdr/pose", PoseStamped, got.append),
             rospy.Subscriber("/mdr/tracking_state", TrackingState, states.append),
@@ -122,22 +134,13 @@ def test_frames_before_the_camera_mount_is_in_tf_are_tracked_and_published_in_ba
     rospy = rospy_client
     import tf2_ros
     from mdr_slam import conversions as cv
-    from mdr_slam.camera import StereoCamera
     from mdr_slam.geometry import inv_T, parse_transform
-    from mdr_slam.pose.synthetic import BoxRoom, orbit_trajectory
     from mdr_slam_msgs.msg import TrackingState
     from geometry_msgs.msg import PoseStamped
 
-    cam = StereoCamera.from_rectified(480, 320, 300.0, 300.0, 240.0, 160.0, 0.12)
-    room = BoxRoom((3.0, 1.5, 3.0), tex_size=768, seed=3)
-    poses = orbit_trajectory(10, radius=1.0, arc=np.pi / 6)
-    frames = [room.render_stereo(T, cam) for T in poses]
+    cam, poses, frames = _orbit(10, np.pi / 6)
     A = parse_transform(_MOUNT)
-    node = start_process(["rosrun", "mdr_slam", "pose_node", "_source:=orb", "_threads:=false",
-                          "_n_features:=1000", "__name:=orb_late_tf",
-                          "left/image:=/l/left/image", "right/image:=/l/right/image",
-                          "left/camera_info:=/l/left/info", "right/camera_info:=/l/right/info"],
-                         "orb_late_tf")
+    node = _orb_node(start_process, "orb_late_tf", "/l")
     got, states = [], []
     subs = [rospy.Subscriber("/mdr/pose", PoseStamped, got.append),
             rospy.Subscriber("/mdr/tracking_state", TrackingState, states.append)]
@@ -203,19 +206,10 @@ def test_orb_node_drops_stale_frames_when_busy(rospy_client, start_process):
     (counted in /diagnostics), and the frames after a gap are still tracked (motion model dt)."""
     rospy = rospy_client
     from diagnostic_msgs.msg import DiagnosticArray
-    from mdr_slam.camera import StereoCamera
-    from mdr_slam.pose.synthetic import BoxRoom, orbit_trajectory
     from mdr_slam_msgs.msg import TrackingState
 
-    cam = StereoCamera.from_rectified(480, 320, 300.0, 300.0, 240.0, 160.0, 0.12)
-    room = BoxRoom((3.0, 1.5, 3.0), tex_size=768, seed=3)
-    poses = orbit_trajectory(16, radius=1.0, arc=np.pi / 4)
-    frames = [room.render_stereo(T, cam) for T in poses]
-    node = start_process(["rosrun", "mdr_slam", "pose_node", "_source:=orb", "_threads:=false",
-                          "_n_features:=1000", "__name:=orb_burst",
-                          "left/image:=/b/left/image", "right/image:=/b/right/image",
-                          "left/camera_info:=/b/left/info", "right/camera_info:=/b/right/info"],
-                         "orb_burst")
+    cam, poses, frames = _orbit(16, np.pi / 4)
+    node = _orb_node(start_process, "orb_burst", "/b")
     states, diags = [], []
     subs = [rospy.Subscriber("/mdr/tracking_state", TrackingState, states.append),
             rospy.Subscriber("/diagnostics", DiagnosticArray, diags.append)]
