@@ -112,8 +112,13 @@ class RateWindow:
 def update_diagnostics(updater) -> None:
     """``diagnostic_updater.Updater.update()`` that survives ROS time jumping back (a looping bag):
     the updater waits until ``last_time + period``, which lies in the future after a jump, so
-    /diagnostics would go quiet for the bag's length. Reset it when now is before its last update."""
+    /diagnostics would go quiet for the bag's length. Reset it when now is before its last update.
+    A tick that comes while the node shuts down (its publisher already closed) is dropped."""
     last = getattr(updater, "last_time", None)
     if last is not None and rospy.Time.now() < last:
         updater.last_time = rospy.Time(0)
-    updater.update()
+    try:
+        updater.update()
+    except rospy.ROSException:
+        if not rospy.is_shutdown():
+            raise
