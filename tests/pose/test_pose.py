@@ -1580,3 +1580,41 @@ def test_a_weak_frame_asks_for_a_keyframe_while_local_mapping_is_busy():
     assert not need(weak, queue=3)                  # LocalMapping too far behind
     assert not need(int(400 * tracking.WEAK_REF_RATIO) + 10)   # not weak: wait for an idle one
     assert need(90)                                 # ORB-SLAM2's own 0.25 still holds
+
+
+def test_a_view_the_map_does_not_cover_is_tracked_by_visual_odometry_and_mapped(room):
+    """A turn while LocalMapping lags (here: never runs) and keyframes map only their 100 closest
+    stereo points (th_depth tiny, as far walls make it): those points leave the view and the map
+    has nothing else there. The frame-to-frame PnP on the last frame's stereo points keeps the
+    pose, and that frame becomes a keyframe mapping all its stereo points; without it the frame is
+    LOST."""
+    from mdr_slam.pose import tracking
+    poses = orbit_trajectory(30, radius=1.0, arc=np.radians(6.0) * 30)
+    images = [room.render_stereo(T, CAM) for T in poses]
+
+    def run():
+        s = System(CAM, config={"th_depth": 4.0}, threads=False)
+        s.local_mapping.spin_sync = lambda: None
+        vo_frames = []
+        track_vo = s.tracking.track_visual_odometry
+
+        def spy(frame):
+            ok = track_vo(frame)
+            if ok:
+                vo_frames.append(frame)
+            return ok
+        s.tracking.track_visual_odometry = spy
+        res = [s.track(0.05 * i, l, r) for i, (l, r) in enumerate(images)]
+        s.shutdown()
+        return s, res, vo_frames
+
+    with tuned(tracking, VO_MIN_INLIERS=10 ** 9):   # without it
+        _, res, _ = run()
+    assert "LOST" in [r.state for r in res]
+    s, res, vo_frames = run()
+    assert [r.state for r in res] == ["OK"] * len(res)
+    assert vo_frames and all(f.ref_kf is not None and f.ref_kf.frame_id == f.id
+                             for f in vo_frames)
+    for f in vo_frames:   # its keyframe maps every stereo point, far ones too
+        assert np.count_nonzero(f.ref_kf.mp_ids >= 0) >= 0.9 * np.count_nonzero(f.depth > 0)
+    assert _ate(s, poses) < 0.02

@@ -63,6 +63,8 @@ FLOW_LEVELS = 3                # ... pyramid levels above full resolution ...
 FLOW_FB_PX = 1.0               # ... and forward-backward disagreement allowed (px)
 FLOW_PNP_MIN_TEXTURE = 10.0    # PnP on the tracks whose patch has this x and y gradient energy ...
 FLOW_PNP_MIN_TRACKS = 15       # ... when at least this many (else all tracks)
+VO_MIN_INLIERS = 50            # frame-to-frame PnP inliers for a frame the map does not cover (not in
+                               # ORB-SLAM2: its stereo tracker is LOST there)
 WIDE_SEARCH_TH = 6.0
 GUESS_KEYFRAMES = 5            # a pose guess is tried against the map points of this many nearest keyframes,
 GUESS_METRES_PER_RADIAN = 1.0  # ranked by distance + this x the angle between optical axes           # local-map projection window (x4 px x scale) when both the motion model and
@@ -111,6 +113,7 @@ class Tracking:
         # keyframe made from a tracked frame
         self.kf_records: List[tuple] = []
         self.pose_guess: Optional[np.ndarray] = None   # T_cw to try on the next frame (set_pose_guess)
+        self._vo = None   # (frame id, T_cw, world points, keypoints) of track_last_frame_pnp's PnP
         self.n_keyframes_created = 0                   # by this run's frames (a loaded map's not counted)
 
     # ------------------------------------------------------------------ entry
@@ -134,7 +137,8 @@ class Tracking:
             self._check_ref_kf()
             relocalized = False
             coasting = self.state == LOST and self.can_coast(frame)
-            ok = False
+            ok = vo = False
+            self._vo = None
             guess, self.pose_guess = self.pose_guess, None
             if guess is not None and self.state == LOST:
                 ok = relocalized = self.track_from_guess(frame, guess)
@@ -158,6 +162,8 @@ class Tracking:
                     ok = self.track_local_map_wide(frame) and self.track_local_map(frame)
                 if not ok:
                     ok = self.track_last_frame_pnp(frame) and self.track_local_map(frame)
+                if not ok and not self.system.localization:
+                    vo = ok = self.track_visual_odometry(frame)
             prior, frame.prior = frame.prior, None   # relocalization and the keyframe go without it
             if ok:
                 self.refine_on_one_patch(frame, prior)
@@ -175,8 +181,8 @@ class Tracking:
                 # drop outliers before the keyframe decision (ORB-SLAM2 end of Track)
                 frame.mp_ids[frame.outlier] = -1
                 frame.outlier[:] = False
-                if not self.system.localization and self.need_new_keyframe(frame):
-                    kf = self.create_new_keyframe(frame)
+                if vo or (not self.system.localization and self.need_new_keyframe(frame)):
+                    kf = self.create_new_keyframe(frame, all_stereo=vo)
                     self.n_keyframes_created += 1
                     out.update(is_keyframe=True, keyframe_id=kf.id)
             else:
@@ -386,6 +392,7 @@ class Tracking:
             return False
         _set_pnp_pose(frame, rvec, tvec)
         inl = inl.ravel()
+        self._vo = (frame.id, frame.T_cw.copy(), Pw[inl], jb[inl])
         mp_of = last.mp_ids[st[ia[inl]]]
         good = (mp_of >= 0) & ~self.map.mp_bad[np.maximum(mp_of, 0)]
         frame.mp_ids[jb[inl][good]] = mp_of[good]
@@ -399,6 +406,49 @@ class Tracking:
             return False
         Optimizer.pose_optimization(frame, self.map)
         return self._discard_outliers(frame) >= 10
+
+    def track_visual_odometry(self, frame: Frame) -> bool:
+        """The map does not cover the view (not in ORB-SLAM2): a fast turn past far walls while
+        LocalMapping lags, so the keyframes' few close points have left the view and their far
+        ones are not triangulated yet. The frame-to-frame PnP of :meth:`track_last_frame_pnp`
+        (the last frame's stereo points, far ones too) is kept when ``VO_MIN_INLIERS`` support it,
+        refined together with the local-map points found around that pose, and the frame then
+        becomes a keyframe mapping all its stereo points, as StereoInitialization does, so the
+        next frame has a map again (ORB-SLAM2's localization mode tracks such frames by
+        visual odometry too, but makes no keyframe)."""
+        vo, self._vo = self._vo, None
+        if vo is None or vo[0] != frame.id or len(vo[3]) < VO_MIN_INLIERS:
+            return False
+        _, T0, Pw, jb = vo
+        T, outlier, n = Optimizer.pose_from_points(frame, T0, frame.uv[jb], frame.ur[jb],
+                                                   frame.octave[jb], frame.inv_level_sigma2, Pw)
+        if n < VO_MIN_INLIERS:
+            return False
+        frame.set_pose(T)
+        frame.mp_ids[:] = -1
+        frame.outlier[:] = False
+        pts = [k.valid_mp_ids(self.map.mp_bad) for k in [self.ref_kf] + self.local_kfs
+               if k is not None and not k.bad]
+        if pts:
+            self.matcher.search_local_points(frame, self.map, np.unique(np.concatenate(pts)), th=3.0)
+        idx = np.nonzero(frame.mp_ids >= 0)[0]
+        if len(idx):
+            # the map points join the frame-to-frame ones; those that disagree are outliers
+            ids = frame.mp_ids[idx]
+            ok_jb = ~outlier
+            uv = np.concatenate([frame.uv[idx], frame.uv[jb[ok_jb]]])
+            ur = np.concatenate([frame.ur[idx], frame.ur[jb[ok_jb]]])
+            octv = np.concatenate([frame.octave[idx], frame.octave[jb[ok_jb]]])
+            P = np.concatenate([self.map.mp_pos[ids], Pw[ok_jb]])
+            bad = np.concatenate([self.map.mp_bad[ids], np.zeros(int(ok_jb.sum()), bool)])
+            T, out2, n = Optimizer.pose_from_points(frame, T, uv, ur, octv, frame.inv_level_sigma2,
+                                                    P, bad=bad)
+            if n < VO_MIN_INLIERS:
+                return False
+            frame.set_pose(T)
+            frame.outlier[idx] = out2[:len(idx)]
+        self.n_matches_inliers = int(np.count_nonzero((frame.mp_ids >= 0) & ~frame.outlier))
+        return True
 
     def _lk(self):
         win = int(FLOW_WINDOW)
@@ -817,8 +867,9 @@ class Tracking:
             return lm.queue_size() < 3
         return False
 
-    def create_new_keyframe(self, frame: Frame):
-        """New keyframe with new map points from close stereo keypoints (CreateNewKeyFrame)."""
+    def create_new_keyframe(self, frame: Frame, all_stereo: bool = False):
+        """New keyframe with new map points from close stereo keypoints (CreateNewKeyFrame);
+        ``all_stereo``: from every stereo keypoint (a view the map does not cover)."""
         mp = self.map
         kf = mp.new_keyframe(frame)
         kf.parent = self.ref_kf
@@ -827,7 +878,7 @@ class Tracking:
         if len(stereo):
             n_pts = np.arange(1, len(stereo) + 1)
             stop = (frame.depth[stereo] > frame.th_depth) & (n_pts > MIN_CLOSE_POINTS)
-            if np.any(stop):
+            if np.any(stop) and not all_stereo:
                 stereo = stereo[: int(np.argmax(stop))]
             new = stereo[frame.mp_ids[stereo] < 0]
             if len(new):
