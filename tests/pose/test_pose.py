@@ -463,6 +463,37 @@ def test_vocabulary_scores_same_place_higher(room, sequence):
     assert np.all((w >= 0) & (w < voc.n_words))
 
 
+def test_keyframe_database_query_ranks_by_the_l1_score_among_the_most_shared_words():
+    """ORB-SLAM2 DetectLoopCandidates as the database answers it: keyframes with >= 80 % of the
+    most common words shared (excluded ones left out before that maximum), ranked by bow_score."""
+    from types import SimpleNamespace
+    from mdr_slam.pose.vocabulary import KeyFrameDatabase, bow_score
+    rng = np.random.RandomState(4)
+
+    def bow(words):
+        words = np.unique(words)
+        v = rng.rand(len(words)).astype(np.float32)
+        return words, v / v.sum()
+    db = KeyFrameDatabase(SimpleNamespace(n_words=500))
+    bows = {k: bow(rng.randint(0, 500, 120)) for k in range(40)}
+    for k, b in bows.items():
+        db.add(k * 3, b)
+    db.erase(3 * 7)
+    q = bow(np.concatenate([bows[5][0][:80], rng.randint(0, 500, 40)]))
+    for exclude in ((), {15}, {15, 3 * 9}):
+        common = {3 * k: len(np.intersect1d(q[0], b[0])) for k, b in bows.items()
+                  if k != 7 and 3 * k not in exclude}
+        mx = max(common.values())
+        want = sorted(((k, bow_score(q, bows[k // 3])) for k, c in common.items()
+                       if c >= 0.8 * mx), key=lambda x: -x[1])[:10]
+        got = db.query(q, exclude=exclude)
+        assert [k for k, _ in got] == [k for k, _ in want]
+        assert np.allclose([s for _, s in got], [s for _, s in want], rtol=1e-5)
+    assert db.query(q, exclude={15})[0][0] != 15 and db.query(q)[0][0] == 15
+    assert db.query(q, min_score=2.0) == [] and db.query(bow(np.array([499, 498])),
+                                                        exclude=set(db.bows)) == []
+
+
 def test_ransac_se3_with_outliers():
     from mdr_slam.pose.loop_closing import ransac_se3
     rng = np.random.RandomState(5)

@@ -244,41 +244,56 @@ def load_vocabulary(path: Optional[str] = None) -> ORBVocabulary:
 
 
 class KeyFrameDatabase:
-    """Inverted file word -> keyframe ids (ORB-SLAM2 KeyFrameDatabase)."""
+    """Inverted file word -> keyframe ids (ORB-SLAM2 KeyFrameDatabase), held as flat arrays of
+    every keyframe's (word, weight) entries, so a query is a few vectorized passes over them
+    instead of a Python loop over its words' lists."""
 
     def __init__(self, voc: ORBVocabulary):
         self.voc = voc
-        self.inv: Dict[int, List[int]] = {}
         self.bows: Dict[int, Tuple[np.ndarray, np.ndarray]] = {}
+        self._flat = None   # (keyframe ids, entry -> keyframe index, words, weights); None: stale
 
     def add(self, kf_id: int, bow) -> None:
         self.bows[kf_id] = bow
-        for w in bow[0].tolist():
-            self.inv.setdefault(w, []).append(kf_id)
+        self._flat = None
 
     def erase(self, kf_id: int) -> None:
-        bow = self.bows.pop(kf_id, None)
-        if bow is not None:
-            for w in bow[0].tolist():
-                lst = self.inv.get(w)
-                if lst and kf_id in lst:
-                    lst.remove(kf_id)
+        if self.bows.pop(kf_id, None) is not None:
+            self._flat = None
+
+    def _entries(self):
+        if self._flat is None:
+            ids = np.fromiter(self.bows, dtype=np.int64, count=len(self.bows))
+            bows = list(self.bows.values())
+            n = np.array([len(b[0]) for b in bows], dtype=np.int64)
+            self._flat = (ids, np.repeat(np.arange(len(ids)), n),
+                          np.concatenate([b[0] for b in bows]).astype(np.int64),
+                          np.concatenate([b[1] for b in bows]).astype(np.float64))
+        return self._flat
 
     def query(self, bow, exclude=(), min_score: float = 0.0, top: int = 10) -> List[Tuple[int, float]]:
         """Keyframes sharing words with ``bow``: those with >= 80 % of the best common-word count,
         scored with the L1 score, best first (ORB-SLAM2 DetectLoopCandidates, without the
         covisibility-group accumulation)."""
-        counts: Dict[int, int] = {}
-        for w in bow[0].tolist():
-            for k in self.inv.get(w, ()):
-                counts[k] = counts.get(k, 0) + 1
-        for k in exclude:
-            counts.pop(k, None)
-        if not counts:
+        if not self.bows or len(bow[0]) == 0:
             return []
-        mx = max(counts.values())
-        cands = [k for k, c in counts.items() if c >= 0.8 * mx]
-        scored = [(k, bow_score(bow, self.bows[k])) for k in cands]
-        scored = [x for x in scored if x[1] >= min_score]
-        scored.sort(key=lambda x: -x[1])
-        return scored[:top]
+        ids, row, words, weights = self._entries()
+        slot = np.zeros(max(int(self.voc.n_words), int(words.max()) + 1,
+                            int(np.max(bow[0])) + 1), dtype=np.int64)
+        slot[bow[0]] = np.arange(1, len(bow[0]) + 1)   # query words are unique (transform)
+        s = slot[words]
+        common = s > 0
+        r = row[common]
+        counts = np.bincount(r, minlength=len(ids))
+        if exclude:
+            counts[np.isin(ids, np.fromiter(exclude, dtype=np.int64))] = 0
+        mx = int(counts.max())
+        if mx == 0:
+            return []
+        va = np.asarray(bow[1], np.float64)[s[common] - 1]
+        vb = weights[common]
+        score = 0.5 * np.bincount(r, weights=np.abs(va) + np.abs(vb) - np.abs(va - vb),
+                                  minlength=len(ids))   # bow_score for every keyframe at once
+        cand = np.nonzero((counts >= 0.8 * mx) & (score >= min_score))[0]
+        cand = cand[np.lexsort((ids[cand], -score[cand]))][:top]
+        return [(int(ids[i]), float(score[i])) for i in cand]
