@@ -1644,6 +1644,7 @@ def test_a_view_the_map_does_not_cover_is_tracked_by_visual_odometry_and_mapped(
     assert "LOST" in [r.state for r in res]
     s, res, vo_frames = run()
     assert [r.state for r in res] == ["OK"] * len(res)
+    assert res[-1].n_visual_odometry == len(vo_frames)   # reported (pose node diagnostics)
     assert vo_frames and all(f.ref_kf is not None and f.ref_kf.frame_id == f.id
                              for f in vo_frames)
     for f in vo_frames:   # its keyframe maps every stereo point, far ones too

@@ -237,6 +237,9 @@ def test_orb_node_drops_stale_frames_when_busy(rospy_client, start_process):
                         yield int(kv["frames_dropped_busy"])
     assert wait_for(lambda: max(dropped(), default=0) > 0, 5), [d.status for d in diags[-1:]]
     n_drop = max(dropped())
+    kv = {v.key: v.value for d in diags for st in d.status if st.name.endswith("pose")
+          for v in st.values}
+    assert kv["frames_visual_odometry"] == "0"      # the map covered every view
     assert node.proc.poll() is None, node.output()
     assert 2 <= len(states) < len(frames)           # stale pairs were skipped, not queued
     assert len(states) + n_drop <= len(frames)

@@ -513,6 +513,7 @@ def _summarize(args, bag, lst: "_Listener", samples, elapsed, pose_source) -> di
     r["pose_dropped_busy"] = fdiag("pose", "frames_dropped_busy")   # newest pair kept
     r["pose_keyframes"] = fdiag("pose", "keyframes")
     r["pose_loop_closures"] = fdiag("pose", "loop_closures")
+    r["pose_visual_odometry"] = fdiag("pose", "frames_visual_odometry")
     r["map_points"] = fdiag("fusion", "map points")
     cpu, rss = OrderedDict(), OrderedDict()
     tot_cpu = np.zeros(len(samples))
@@ -571,8 +572,9 @@ def _report_md(r) -> str:
                                                                           r["frames_in_bag"]),
              "| frames tracked; LOST | %s; %s |" % (r["frames_tracked"],
                                                    r["tracking_states"].get("LOST", 0)),
-             "| keyframes; loop closures (pose node) | %s; %s |" % (r.get("pose_keyframes"),
-                                                                   r.get("pose_loop_closures")),
+             "| keyframes; loop closures; frames tracked frame to frame, the map behind (pose "
+             "node) | %s; %s; %s |" % (r.get("pose_keyframes"), r.get("pose_loop_closures"),
+                                       r.get("pose_visual_odometry")),
              "| live ATE (poses as published, SE(3) aligned to the bag's ground truth): RMSE / "
              "max / poses | %s |" % ("-" if not r["live_ate"] else "%.3f m / %.3f m / %d" % (
                  r["live_ate"]["rmse_m"], r["live_ate"]["max_m"], r["live_ate"]["n"])),

@@ -193,7 +193,7 @@ class PoseRelay:
         self.last_latency = float("nan")
         self.tracking = {"state": "GROUNDTRUTH" if self.p.source == "groundtruth"
                          else "NOT_INITIALIZED", "time_ms": float("nan"), "lost": 0,
-                         "keyframes": 0, "loop_closures": 0, "last_ok": None}
+                         "keyframes": 0, "loop_closures": 0, "visual_odometry": 0, "last_ok": None}
         self.diag = diagnostic_updater.Updater()
         self.diag.setHardwareID("mdr_slam")
         self.diag.add("pose", self.diagnostics)
@@ -205,6 +205,7 @@ class PoseRelay:
         t = self.tracking
         t["state"], t["time_ms"] = str(res.state), float(res.time_ms)
         t["keyframes"], t["loop_closures"] = int(res.n_keyframes), int(res.n_loop_closures)
+        t["visual_odometry"] = int(getattr(res, "n_visual_odometry", 0))
         if res.state == "LOST":
             t["lost"] += 1
         elif res.T_map_cam is not None:
@@ -232,6 +233,8 @@ class PoseRelay:
         stat.add("frames_lost", str(t["lost"]))
         stat.add("keyframes", str(t["keyframes"]))
         stat.add("loop_closures", str(t["loop_closures"]))
+        # tracked frame to frame where the map did not cover the view (fast turns, mapping behind)
+        stat.add("frames_visual_odometry", str(t["visual_odometry"]))
         stat.add("last_tracked_s_ago", "%.2f" % ((rospy.Time.now() - t["last_ok"]).to_sec()
                                                   if t["last_ok"] is not None else float("nan")))
         for k, v in sorted(self.warn.counts.items()):

@@ -115,6 +115,7 @@ class Tracking:
         self.pose_guess: Optional[np.ndarray] = None   # T_cw to try on the next frame (set_pose_guess)
         self._vo = None   # (frame id, T_cw, world points, keypoints) of track_last_frame_pnp's PnP
         self.n_keyframes_created = 0                   # by this run's frames (a loaded map's not counted)
+        self.n_visual_odometry = 0                     # frames the map did not cover (track_visual_odometry)
 
     # ------------------------------------------------------------------ entry
     def track(self, frame: Frame) -> dict:
@@ -164,6 +165,7 @@ class Tracking:
                     ok = self.track_last_frame_pnp(frame) and self.track_local_map(frame)
                 if not ok and not self.system.localization:
                     vo = ok = self.track_visual_odometry(frame)
+                    self.n_visual_odometry += int(vo)
             prior, frame.prior = frame.prior, None   # relocalization and the keyframe go without it
             if ok:
                 self.refine_on_one_patch(frame, prior)
