@@ -23,7 +23,7 @@ class TrackResult:
     n_map_points: int = 0
     n_keyframes: int = 0
     n_loop_closures: int = 0
-    n_visual_odometry: int = 0                 # frames so far tracked frame to frame, the map not covering them
+    n_visual_odometry: int = 0                 # frames so far tracked frame to frame (map behind)
     track_ms: float = 0.0                      # tracking alone (time_ms adds sync-mode mapping)
     track_cpu_ms: float = 0.0                  # CPU of the threads making (left image) and tracking it
     lock_wait_ms: float = 0.0                  # waiting for the map lock (mapping threads)

@@ -201,7 +201,8 @@ class System:
             n_map_points=self.tracking.n_local_points,
             n_keyframes=len(self.map.good_keyframes()),
             n_loop_closures=self.map.n_loop_closures,
-            n_visual_odometry=self.tracking.n_visual_odometry, track_ms=t_track, track_cpu_ms=c_track,
+            n_visual_odometry=self.tracking.n_visual_odometry,
+            track_ms=t_track, track_cpu_ms=c_track,
             lock_wait_ms=self.tracking.lock_wait_ms, frame_ms=t_frame)
 
     def _collect_corrections(self):
