@@ -463,6 +463,45 @@ def test_vocabulary_scores_same_place_higher(room, sequence):
     assert np.all((w >= 0) & (w < voc.n_words))
 
 
+def test_search_by_bow_matches_within_vocabulary_nodes_as_brute_force_does_there(room, sequence):
+    """SearchByBoW: a descriptor is compared only with those under the same node of the direct
+    index; there it keeps the brute-force answer (best within TH_LOW, ratio to the node's second
+    best, one match per descriptor of the other set)."""
+    from mdr_slam.pose.matcher import ORBmatcher
+    from mdr_slam.pose.orb import TH_LOW, hamming_matrix
+    from mdr_slam.pose.vocabulary import load_vocabulary
+    voc = load_vocabulary()
+    ex = ORBextractor(800)
+    _, images = sequence
+    d1, d2 = ex(images[0][0])[3], ex(images[1][0])[3]
+    w1, w2 = voc.transform_words(d1), voc.transform_words(d2)
+    n1, n2 = voc.node_of_words(w1, 2), voc.node_of_words(w2, 2)
+    assert np.array_equal(n1, voc.transform_words(d1, depth=2))
+    assert 10 < len(np.unique(n1)) <= 100
+    i, j, d = ORBmatcher.search_by_bow(d1, n1, d2, n2, ratio=0.75)
+    assert len(i) > 100 and len(np.unique(j)) == len(j)
+    assert np.all(n1[i] == n2[j]) and np.all(d <= TH_LOW)
+    # the reference: per descriptor of set 1, brute force over its node, then one per set-2 index
+    D = hamming_matrix(d1, d2).astype(float)
+    D[n1[:, None] != n2[None, :]] = np.inf
+    want = {}
+    for a in range(len(d1)):
+        o = np.argsort(D[a], kind="stable")
+        best, second = D[a, o[0]], (D[a, o[1]] if np.isfinite(D[a, o[1]]) else 256)
+        if best <= TH_LOW and best < 0.75 * second:
+            b = int(o[0])
+            if b not in want or best < want[b][1]:
+                want[b] = (a, best)
+    got = {int(b): (int(a), float(dd)) for a, b, dd in zip(i, j, d)}
+    assert set(got) == set(want)
+    assert all(got[b][1] == want[b][1] for b in want)
+    # about a hundredth of the brute-force pairs: matches from most of what brute force finds
+    from mdr_slam.pose.orb import hamming_knn2
+    dk, _ = hamming_knn2(d1, d2)
+    n_brute = int(np.count_nonzero((dk[:, 0] <= TH_LOW) & (dk[:, 0] < 0.75 * dk[:, 1])))
+    assert len(i) > 0.5 * n_brute
+
+
 def test_keyframe_database_query_ranks_by_the_l1_score_among_the_most_shared_words():
     """ORB-SLAM2 DetectLoopCandidates as the database answers it: keyframes with >= 80 % of the
     most common words shared (excluded ones left out before that maximum), ranked by bow_score."""

@@ -3,11 +3,12 @@
 Per keyframe: its BoW vector (ORBVocabulary) goes into the KeyFrameDatabase; loop candidates are
 keyframes not connected to it whose L1 score beats the lowest score of its covisible neighbours
 and that recur for ``loop_consistency`` consecutive keyframes (ORB-SLAM2's consistent groups).
-Geometric verification matches map-point descriptors between the two keyframes and fits the
-3D-3D rigid transform with RANSAC (batched Umeyama on 3-point samples; SE(3), since stereo fixes
-the scale), then projects the candidate's neighbourhood with the corrected pose for more
-matches. Correction: the current keyframe's covisible group is moved by the loop transform,
-duplicate points are fused, and an SE(3) pose graph over the essential graph (spanning tree,
+Geometric verification matches map-point descriptors between the two keyframes under the same
+vocabulary node (ORB-SLAM2 SearchByBoW: ORBmatcher.search_by_bow) and fits the 3D-3D rigid
+transform with RANSAC (batched Umeyama on 3-point samples; SE(3), since stereo fixes the scale),
+then projects the candidate's neighbourhood with the corrected pose for more matches.
+Correction: the current keyframe's covisible group is moved by the loop transform, duplicate
+points are fused, and an SE(3) pose graph over the essential graph (spanning tree,
 strong covisibility edges >= 100, loop edges) is optimised with GTSAM BetweenFactorPose3; every
 map point follows its reference keyframe. The corrected keyframe poses are reported (reason
 ``loop_closure``) so depth and fusion re-anchor. Pose-graph edges carry information from the
@@ -42,9 +43,8 @@ import numpy as np
 
 from ..geometry import inv_T, rotation_angle
 from .ba_process import BAWorker
-from .matcher import ORBmatcher, _unique_by
+from .matcher import ORBmatcher
 from .optimizer import Optimizer, global_bundle_adjustment, normalize_pose
-from .orb import TH_LOW, hamming_knn2
 from .vocabulary import KeyFrameDatabase, bow_score, load_vocabulary
 
 __all__ = ["LoopClosing", "ransac_se3", "rotation_sigma_deg", "loop_rotation_check"]
@@ -57,6 +57,9 @@ LOOP_MAX_ROTATION_DEG = 45.0   # ... and turn it at most this much (false-loop g
 LOOP_MAX_ROT_SIGMA_DEG = 1.0   # a BoW loop whose inliers leave its rotation more uncertain than this ...
 LOOP_ROT_SIGNIFICANCE = 5.0    # ... is accepted only when it turns the map by this many sigmas ...
 LOOP_ROT_SIGMA_CAP_DEG = 4.0   # ... and never when that sigma exceeds this
+LOOP_NN_RATIO = 0.75           # best / second-best distance of a loop match (SearchByBoW: 0.75)
+BOW_NODE_DEPTH = 2             # depth of the vocabulary node loop matches share (ORB-SLAM2's direct
+                               # index: 4 levels up from the leaves of its 6-level tree, also depth 2)
 LOOP_REPROJECTION_REFINE = True  # BoW loop transform refined by the keyframe's pixels (OptimizeSim3)
 POSE_GRAPH_WEIGHTS = True      # pose-graph edge information from shared points (OptimizeEssentialGraph: equal)
 GLOBAL_BA_ITERATIONS = 20      # iterations of each global BA (RunGlobalBundleAdjustment: 10)
@@ -104,7 +107,12 @@ def ransac_se3(A: np.ndarray, B: np.ndarray, th: np.ndarray, iters: int = 300, s
     if n < 3:
         return None, None
     rng = np.random.RandomState(seed)
-    idx = np.array([rng.choice(n, 3, replace=False) for _ in range(iters)])
+    idx = rng.randint(0, n, size=(iters, 3))   # 3 distinct per row: rows with a repeat redrawn
+    while True:
+        rep = (idx[:, 0] == idx[:, 1]) | (idx[:, 0] == idx[:, 2]) | (idx[:, 1] == idx[:, 2])
+        if not rep.any():
+            break
+        idx[rep] = rng.randint(0, n, size=(int(rep.sum()), 3))
     Ts = _umeyama_batch(A[idx], B[idx])
     pred = np.einsum("hij,nj->hni", Ts[:, :3, :3], A) + Ts[:, None, :3, 3]
     err = np.linalg.norm(pred - B[None], axis=2)
@@ -223,8 +231,12 @@ class LoopClosing:
 
     # ------------------------------------------------------------------ BoW
     def bow(self, kf):
-        if kf.bow is None:
-            kf.bow = self.voc.transform(kf.desc)
+        """The keyframe's BoW vector (ORB-SLAM2 KeyFrame::ComputeBoW), and its keypoints' words
+        in ``kf.bow_words`` for the direct index (``search_by_bow``)."""
+        if kf.bow is None or kf.bow_words is None:
+            words = self.voc.transform_words(kf.desc)
+            kf.bow_words = words.astype(np.int32)
+            kf.bow = self.voc.bow_vector(words)
         return kf.bow
 
     def relocalization_candidates(self, frame, n: int):
@@ -558,12 +570,12 @@ class LoopClosing:
         b = b[~mp.mp_bad[cand.mp_ids[b]]]
         if len(a) < self.min_inliers or len(b) < self.min_inliers:
             return None
-        d, nn = hamming_knn2(kf.desc[a], cand.desc[b])   # in C++, out of the interpreter lock
-        ok = (d[:, 0] <= TH_LOW) & (d[:, 0] < 0.75 * d[:, 1])
-        i = np.nonzero(ok)[0]
-        j = nn[ok, 0]
-        u = _unique_by(j, d[i, 0])
-        i, j = i[u], j[u]
+        self.bow(kf)
+        self.bow(cand)
+        node = self.voc.node_of_words
+        i, j, _ = self.matcher.search_by_bow(
+            kf.desc[a], node(kf.bow_words[a], BOW_NODE_DEPTH),
+            cand.desc[b], node(cand.bow_words[b], BOW_NODE_DEPTH), LOOP_NN_RATIO)
         if len(i) < self.min_inliers:
             return None
         ca, cb = kf.mp_ids[a[i]], cand.mp_ids[b[j]]

@@ -14,7 +14,7 @@ from typing import Optional, Tuple
 import numpy as np
 
 from ..geometry import transform_points
-from .orb import TH_HIGH, TH_LOW, hamming, hamming_knn2
+from .orb import TH_HIGH, TH_LOW, expand_ranges, hamming, hamming_knn2
 
 __all__ = ["ORBmatcher"]
 
@@ -169,6 +169,33 @@ class ORBmatcher:
         frame.mp_ids[j] = ids[i]
         frame.outlier[j] = False
         return len(i), ids
+
+    @staticmethod
+    def search_by_bow(desc1: np.ndarray, node1: np.ndarray, desc2: np.ndarray, node2: np.ndarray,
+                      ratio: float, th: int = TH_LOW) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """ORB-SLAM2 SearchByBoW (keyframe to keyframe): a descriptor of set 1 is compared only with
+        those of set 2 under the same vocabulary node (``node1``, ``node2``: the direct index,
+        ORBVocabulary.node_of_words); its best match is kept when within ``th`` and below
+        ``ratio`` x the second best of that node, one per descriptor of set 2 (the closest).
+        Returns (index in set 1, index in set 2, distance). About a hundredth of the pairs of a
+        brute-force search with 100 nodes."""
+        none = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int32))
+        if len(desc1) == 0 or len(desc2) == 0:
+            return none
+        o2 = np.argsort(node2, kind="stable")
+        n2 = np.asarray(node2)[o2]
+        own, pos = expand_ranges(np.searchsorted(n2, node1, side="left"),
+                                 np.searchsorted(n2, node1, side="right"))
+        if len(own) == 0:
+            return none
+        j = o2[pos]
+        d = hamming(desc1[own], desc2[j])
+        best, second, _ = _best_two(own, d, j)
+        bi, bj, bd = own[best], j[best], d[best]
+        ok = (bd <= th) & (bd < ratio * second)
+        bi, bj, bd = bi[ok], bj[ok], bd[ok]
+        u_ = _unique_by(bj, bd)
+        return bi[u_], bj[u_], bd[u_]
 
     def search_by_descriptors(self, kf, frame, map_, ratio: float = 0.7,
                               th: int = TH_LOW) -> Tuple[np.ndarray, np.ndarray]:

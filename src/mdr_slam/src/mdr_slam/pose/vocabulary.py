@@ -135,13 +135,23 @@ class ORBVocabulary:
 
     def transform(self, desc: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         """Sparse L1-normalised tf-idf vector: (sorted word ids, weights)."""
-        if len(desc) == 0:
+        return self.bow_vector(self.transform_words(desc))
+
+    def bow_vector(self, w: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        """:meth:`transform`'s vector from the descriptors' word ids (``transform_words``)."""
+        if len(w) == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.float32)
-        w = self.transform_words(desc)
         words, counts = np.unique(w, return_counts=True)
         val = counts.astype(np.float32) / len(w) * self.idf[words]
         s = val.sum()
         return words, (val / s if s > 0 else val)
+
+    def node_of_words(self, words: np.ndarray, depth: int) -> np.ndarray:
+        """The node at ``depth`` (1 = the root's children) above each word: DBoW2's direct index
+        (FeatureVector) from the words, as ``transform_words(desc, depth)`` would give it (the tree
+        is complete, so a node's children are numbered node * k + 0..k-1)."""
+        up = self.L - max(1, min(int(depth), self.L))
+        return np.asarray(words) // (self.k ** up)
 
     def save(self, path: str) -> None:
         with atomic_path(path, ".npz") as tmp:
