@@ -186,8 +186,10 @@ def stereo_features(left: np.ndarray, right: np.ndarray, extractor: ORBextractor
                     extractor_right: Optional[ORBextractor], fx: float, baseline: float,
                     doffs: float = 0.0) -> tuple:
     """What a Frame is made of: ORB on both images and the stereo matches,
-    ``(uv, octave, angle, desc, ur, depth, n_primary)`` (``n_primary``: the left image's corners
-    at the first FAST threshold, Tracking's low-texture test). With a second extractor the right
+    ``(uv, octave, angle, desc, ur, depth, n_primary, grad)`` (``n_primary``: the left image's
+    corners at the first FAST threshold, Tracking's low-texture test; ``grad``: the keypoints'
+    :func:`gradient_energy`, for the texture weights, made here so that a frame made in a worker
+    process leaves the tracking thread nothing per pixel to do). With a second extractor the right
     image is extracted in a worker thread while this one does the left (cv2 releases the GIL
     inside detect/compute; two cv2.ORB objects: they are not re-entrant)."""
     if extractor_right is not None and extractor_right is not extractor:
@@ -201,7 +203,8 @@ def stereo_features(left: np.ndarray, right: np.ndarray, extractor: ORBextractor
         extractor.n_primary = n_primary   # the left image's, as with two extractors
     ur, depth = compute_stereo_matches(left, right, uv, octave, desc, uv_r, oct_r, desc_r,
                                        extractor.scale, fx, baseline, doffs=doffs)
-    return uv, octave, angle, desc, ur, depth, int(getattr(extractor, "n_primary", len(uv)))
+    return (uv, octave, angle, desc, ur, depth, int(getattr(extractor, "n_primary", len(uv))),
+            gradient_energy(left, uv))
 
 
 _JOB_EXTRACTORS: dict = {}
@@ -313,7 +316,9 @@ class Frame:
         if features is None:
             features = stereo_features(left, right, extractor, extractor_right, self.fx,
                                        self.baseline, self.doffs)
-        self.uv, self.octave, self.angle, self.desc, self.ur, self.depth, self.n_primary = features
+        self.uv, self.octave, self.angle, self.desc, self.ur, self.depth, self.n_primary = \
+            features[:7]
+        self._grad = features[7] if len(features) > 7 else None   # gradient_energy of the keypoints
         self.N = len(self.uv)
         # the images, for the optical-flow fallback (only the last frame is kept by Tracking)
         self.image, self.right_image = left, right
@@ -358,10 +363,12 @@ class Frame:
         energy of their patch along that axis over ``texture_tau``, at most 1; None when off."""
         if self.texture_tau <= 0.0:
             return None
-        if self._tex_w is None or len(self._tex_w) < self.N:
-            done = 0 if self._tex_w is None else len(self._tex_w)
-            new = np.minimum(gradient_energy(self.image, self.uv[done:]) / self.texture_tau, 1.0)
-            self._tex_w = new if self._tex_w is None else np.concatenate([self._tex_w, new])
+        if self._grad is None or len(self._grad) < self.N:   # keypoints appended since
+            done = 0 if self._grad is None else len(self._grad)
+            new = gradient_energy(self.image, self.uv[done:])
+            self._grad = new if self._grad is None else np.concatenate([self._grad, new])
+        if self._tex_w is None or len(self._tex_w) != len(self._grad):
+            self._tex_w = np.minimum(self._grad / self.texture_tau, 1.0)
         return self._tex_w[idx]
 
     @property

@@ -365,7 +365,7 @@ class Map:
                and not self.keyframes[k].bad}
         if not cov:
             cov = self.covisibility(kf, min_weight)
-        ids = sorted(cov, key=lambda k: -cov[k])[:n]
+        ids = sorted(cov, key=cov.get, reverse=True)[:n]
         return [self.keyframes[i] for i in ids]
 
     @property

@@ -781,7 +781,7 @@ class Tracking:
                 c = int(np.count_nonzero(mark[o]))
                 if c > 0:
                     counts[kid] = c
-        k1 = sorted(counts, key=lambda k: -counts[k])
+        k1 = sorted(counts, key=counts.get, reverse=True)   # stable: ties keep insertion order
         local = [cand[k] for k in k1]
         seen = set(k1)
         max_kfs = MAX_LOCAL_KEYFRAMES
@@ -789,7 +789,7 @@ class Tracking:
             if len(local) >= max_kfs:
                 break
             conn = getattr(kf, "connections", {})
-            for kid in sorted(conn, key=lambda k: -conn[k])[:10]:
+            for kid in sorted(conn, key=conn.get, reverse=True)[:10]:
                 if kid not in seen:
                     k = self.map.keyframes.get(kid)
                     if k is not None and not k.bad:
