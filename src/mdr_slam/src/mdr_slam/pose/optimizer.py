@@ -174,12 +174,16 @@ def _robust_lm(Ts, fixed, P, cam_idx, pt_idx, obs, stereo, info, intr, iteration
         # the CSR pattern of W is the same in every iteration: build it once (sorted unique
         # entries; a point seen twice by one keyframe sums) and fill only the values after
         w_key, w_inv = np.unique(w_flat, return_inverse=True)
-        w_cols = w_key % (3 * M)
-        w_indptr = np.searchsorted(w_key // (3 * M), np.arange(6 * nv + 1))
-        w_flat = None
+        # int32 indices where they fit: scipy keeps them as they are instead of a converted
+        # copy per matrix made (two per iteration)
+        idt = np.int32 if max(3 * M, len(w_key)) < np.iinfo(np.int32).max else np.int64
+        w_cols = (w_key % (3 * M)).astype(idt)
+        w_indptr = np.searchsorted(w_key // (3 * M), np.arange(6 * nv + 1)).astype(idt)
+        w_flat = w_key = None
+        n_key = len(w_cols)
 
         def w_csr(vals):
-            data = np.bincount(w_inv, weights=vals.ravel(), minlength=len(w_key))
+            data = np.bincount(w_inv, weights=vals.ravel(), minlength=n_key)
             return sp.csr_matrix((data, w_cols, w_indptr), shape=(6 * nv, 3 * M))
 
     cur = residuals(Ts, P)
@@ -210,6 +214,7 @@ def _robust_lm(Ts, fixed, P, cam_idx, pt_idx, obs, stereo, info, intr, iteration
         Hcc = sum_cam(JcT @ Jc[ovi])
         bc = sum_cam((JcT @ e[ovi][:, :, None])[:, :, 0])
         Wb = JcT @ Jl[ovi]                                             # (n, 6, 3)
+        Jc = Jl = JlT = JcT = None   # not needed by the damped solves: their memory goes first
         if nv:
             if sparse:
                 Wd = w_csr(Wb)
