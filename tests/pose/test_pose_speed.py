@@ -385,6 +385,10 @@ def test_threaded_system_makes_frames_in_a_worker_process_identical_to_in_proces
             assert a.N == b.N > 200 and a.n_primary == b.n_primary
             for k in ("uv", "octave", "angle", "desc", "ur", "depth"):
                 np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
+            # the texture weights come made too: the tracking thread computes none
+            assert a._grad is not None and a.texture_tau > 0
+            every = np.arange(a.N)
+            np.testing.assert_allclose(a.texture_weights(every), b.texture_weights(every))
             assert not live.frame_worker.failed
             assert a.build_cpu_ms < 0.5 * b.build_cpu_ms   # the work was done in the child
         assert live.frame_worker._proc.pid != pid
