@@ -5,8 +5,9 @@ keyframes not connected to it whose L1 score beats the lowest score of its covis
 and that recur for ``loop_consistency`` consecutive keyframes (ORB-SLAM2's consistent groups).
 Geometric verification matches map-point descriptors between the two keyframes under the same
 vocabulary node (ORB-SLAM2 SearchByBoW: ORBmatcher.search_by_bow) and fits the 3D-3D rigid
-transform with RANSAC (batched Umeyama on 3-point samples; SE(3), since stereo fixes the scale),
-then projects the candidate's neighbourhood with the corrected pose for more matches.
+transform with RANSAC (batched Umeyama on 3-point samples; SE(3), since stereo fixes the scale);
+a candidate that fits is matched again over all descriptors and fitted on those, then the
+candidate's neighbourhood is projected with the corrected pose for more matches.
 Correction: the current keyframe's covisible group is moved by the loop transform, duplicate
 points are fused, and an SE(3) pose graph over the essential graph (spanning tree,
 strong covisibility edges >= 100, loop edges) is optimised with GTSAM BetweenFactorPose3; every
@@ -43,8 +44,9 @@ import numpy as np
 
 from ..geometry import inv_T, rotation_angle
 from .ba_process import BAWorker
-from .matcher import ORBmatcher
+from .matcher import ORBmatcher, _unique_by
 from .optimizer import Optimizer, global_bundle_adjustment, normalize_pose
+from .orb import TH_LOW, hamming_knn2
 from .vocabulary import KeyFrameDatabase, bow_score, load_vocabulary
 
 __all__ = ["LoopClosing", "ransac_se3", "rotation_sigma_deg", "loop_rotation_check"]
@@ -573,19 +575,30 @@ class LoopClosing:
         self.bow(kf)
         self.bow(cand)
         node = self.voc.node_of_words
-        i, j, _ = self.matcher.search_by_bow(
-            kf.desc[a], node(kf.bow_words[a], BOW_NODE_DEPTH),
-            cand.desc[b], node(cand.bow_words[b], BOW_NODE_DEPTH), LOOP_NN_RATIO)
-        if len(i) < self.min_inliers:
-            return None
-        ca, cb = kf.mp_ids[a[i]], cand.mp_ids[b[j]]
-        A, B = mp.mp_pos[ca], mp.mp_pos[cb]
-        # distance threshold grows with depth (stereo depth error ~ z^2)
-        z = np.linalg.norm(A - kf.T_wc[:3, 3], axis=1)
-        th = 0.05 + 0.01 * z + 0.002 * z ** 2
-        S, mask = ransac_se3(A, B, th)
-        if S is None or mask.sum() < self.min_inliers:
-            return None
+        # screened on the descriptors under the same vocabulary node (most candidates end here);
+        # one that fits a transform there is matched over all descriptors, whose larger set
+        # gives the transform its accuracy
+        for full in (False, True):
+            if full:
+                d, nn = hamming_knn2(kf.desc[a], cand.desc[b])   # in C++, out of the GIL
+                ok = (d[:, 0] <= TH_LOW) & (d[:, 0] < LOOP_NN_RATIO * d[:, 1])
+                i, j = np.nonzero(ok)[0], nn[ok, 0]
+                u = _unique_by(j, d[i, 0])
+                i, j = i[u], j[u]
+            else:
+                i, j, _ = self.matcher.search_by_bow(
+                    kf.desc[a], node(kf.bow_words[a], BOW_NODE_DEPTH),
+                    cand.desc[b], node(cand.bow_words[b], BOW_NODE_DEPTH), LOOP_NN_RATIO)
+            if len(i) < self.min_inliers:
+                return None
+            ca, cb = kf.mp_ids[a[i]], cand.mp_ids[b[j]]
+            A, B = mp.mp_pos[ca], mp.mp_pos[cb]
+            # distance threshold grows with depth (stereo depth error ~ z^2)
+            z = np.linalg.norm(A - kf.T_wc[:3, 3], axis=1)
+            th = 0.05 + 0.01 * z + 0.002 * z ** 2
+            S, mask = ransac_se3(A, B, th)
+            if S is None or mask.sum() < self.min_inliers:
+                return None
         if LOOP_REPROJECTION_REFINE and \
                 float(np.median(z[mask])) > kf.th_depth:   # far points: their 3-D fit is poor
             S = self.refine_by_reprojection(kf, S, a[i][mask], B[mask])
