@@ -11,7 +11,7 @@ from collections import OrderedDict
 
 import numpy as np
 
-from ..io.map_dir import map_files
+from ..io.map_dir import SESSION_KEY, map_files
 from .cloud import normal_bins
 
 __all__ = ["MapIO", "DENSE_FORMAT_VERSION", "save_dense_map", "load_dense_map"]
@@ -159,15 +159,17 @@ def _meta_path(folder: str) -> str:
     return os.path.splitext(map_files(folder)["dense"])[0] + ".json"
 
 
-def save_dense_map(vmap, folder: str) -> int:
+def save_dense_map(vmap, folder: str, session_id: str = "") -> int:
     """The dense map into a map folder (mdr_slam.io.map_dir): ``dense_map.ply`` with every
-    point's state, then ``dense_map.json`` (format, version, voxel size, points); each written
-    atomically. Returns the number of points."""
+    point's state, then ``dense_map.json`` (format, version, voxel size, points, the mapping
+    session's id); each written atomically. Returns the number of points."""
     from ..io import atomic_write
     os.makedirs(folder, exist_ok=True)
     n = vmap.save(map_files(folder)["dense"])
     meta = {"format": DENSE_FORMAT, "format_version": DENSE_FORMAT_VERSION,
             "voxel_size": float(vmap.voxel_size), "points": int(n)}
+    if session_id:
+        meta[SESSION_KEY] = str(session_id)
     atomic_write(_meta_path(folder), json.dumps(meta, indent=1), "w")
     return n
 

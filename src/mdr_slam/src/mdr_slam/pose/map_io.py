@@ -13,7 +13,8 @@ one entry per keyframe. Entries (K keyframes, N keypoints over all of them, n ma
 - header: ``magic`` (MAGIC), ``format_version`` (FORMAT_VERSION), ``camera`` (width, height, fx,
   fy, cx, cy, baseline, doffs of the rectified pair: a map is refused by another camera),
   ``pyramid`` (scale factor, levels), ``T_map_world`` (4x4: the map frame poses are published
-  in), ``next_kf_id``, ``n_loop_closures``, ``n_points`` (n);
+  in), ``next_kf_id``, ``n_loop_closures``, ``n_points`` (n); optional ``session_id`` (the
+  mapping session, mdr_slam.io.map_dir);
 - keyframes (K,): ``kf_id``, ``kf_frame_id``, ``kf_stamp``, ``kf_bad``, ``kf_parent`` (-1: none),
   ``kf_T_cw`` (K,4,4), ``kf_has_T_cp``, ``kf_T_cp`` (K,4,4), ``kf_intrinsics`` (K,8: fx, fy, cx,
   cy, bf, baseline, th_depth, log_scale), ``kf_size`` (K,3: width, height, nlevels);
@@ -92,9 +93,11 @@ def _pack(arrays: List[np.ndarray], dtype, shape=()):
 
 
 # ---------------------------------------------------------------------- save
-def save_pose_map(system, path: str, images: bool = True, compress: bool = True) -> Dict:
+def save_pose_map(system, path: str, images: bool = True, compress: bool = True,
+                  session_id: str = "") -> Dict:
     """Write the tracker's map to ``path`` (one .npz, atomically). ``images``: also the loop
     closer's keyframe images (proximity loops; ~112 kB per keyframe before compression).
+    ``session_id``: the mapping session's id (entry ``session_id``, mdr_slam.io.map_dir).
     Returns {"keyframes", "points", "images", "bytes", "seconds"}."""
     _check_system(system)
     t0 = time.perf_counter()
@@ -165,6 +168,8 @@ def save_pose_map(system, path: str, images: bool = True, compress: bool = True)
         (len(ids),) + (kept[ids[0]][0].shape if ids else (0, 0)))
     d["img_quarter"] = np.array([kept[k][1] for k in ids], np.uint8).reshape(
         (len(ids),) + (kept[ids[0]][1].shape if ids else (0, 0)))
+    if session_id:
+        d["session_id"] = np.array(str(session_id))
     writer = np.savez_compressed if compress else np.savez
     try:
         with atomic_path(path, ".npz") as tmp:
