@@ -76,6 +76,7 @@ def test_orb_node_tracks_synthetic_stream(rospy_client, start_process, tmp_path,
     traj_path = str(tmp_path / "exit.txt")
     A = parse_transform(mount)
     node = _orb_node(start_process, "orb_test", "/t", "_trajectory_path:=" + traj_path,
+                     "_map_dir:=%s" % (tmp_path / "maps"),
                      *(["_base_to_camera:=" + mount] if mount else []))
     got, states, kfs = [], [], []
     subs = [rospy.Subscriber("/mdr/pose", PoseStamped, got.append),
@@ -116,9 +117,17 @@ def test_orb_node_tracks_synthetic_stream(rospy_client, start_process, tmp_path,
     # trajectory service
     rospy.wait_for_service("/orb_test/save_trajectory", 10)
     save = rospy.ServiceProxy("/orb_test/save_trajectory", SaveTrajectory)
-    out = str(tmp_path / "traj.kitti")
-    resp = save(out, "")
-    assert resp.success and resp.n_poses == len(frames), resp.message
+    # a caller's path resolves inside map_dir; escaping ones are refused and nothing is written
+    (tmp_path / "victim.txt").write_text("keep")
+    for bad in (str(tmp_path / "victim.txt"), "../victim.txt", "a/../../victim.txt",
+                "/tmp/mdr_test_trajectory_%d.txt" % os.getpid()):
+        resp = save(bad, "")
+        assert not resp.success and "outside the map directory" in resp.message, (bad, resp)
+    assert (tmp_path / "victim.txt").read_text() == "keep"
+    assert not os.path.exists("/tmp/mdr_test_trajectory_%d.txt" % os.getpid())
+    resp = save("traj.kitti", "")
+    out = str(tmp_path / "maps" / "traj.kitti")
+    assert resp.success and resp.n_poses == len(frames) and resp.path == out, resp.message
     assert np.loadtxt(out).shape == (len(frames), 12)
     np.testing.assert_allclose(np.loadtxt(out)[-1].reshape(3, 4), T_est[:3], atol=1e-3)   # in map too
     # trajectory on shutdown

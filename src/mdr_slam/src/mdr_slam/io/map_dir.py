@@ -23,7 +23,7 @@ import os
 __all__ = ["DENSE_MAP_FILE", "POSE_MAP_FILE", "MapPathError", "default_map_dir", "resolve_map_path",
            "map_files", "SESSION_KEY", "ROTATE_KEEP", "new_session_id", "next_session_id",
            "folder_sessions", "check_folder_sessions", "generation", "rotate_folder", "folder_lock",
-           "session_folder"]
+           "session_folder", "after_rotation", "find_session"]
 
 DENSE_MAP_FILE = "dense_map.ply"
 POSE_MAP_FILE = "pose_map.npz"
@@ -174,6 +174,25 @@ def rotate_folder(folder: str, keep: int = ROTATE_KEEP) -> bool:
             except OSError:
                 pass
     return True
+
+
+def find_session(folder: str, session: str, part: str, keep: int = ROTATE_KEEP):
+    """The generation of the autosave ``folder`` (``folder``, ``folder.1``, ...) whose ``part``
+    ("dense", "pose") is of ``session``, or None."""
+    if not session:
+        return None
+    for k in range(0, max(1, int(keep)) + 1):
+        if folder_sessions(generation(folder, k)).get(part) == session:
+            return generation(folder, k)
+    return None
+
+
+def after_rotation(path: str, folder: str, keep: int = ROTATE_KEEP) -> str:
+    """Where ``path`` (a generation of the autosave ``folder``) is after :func:`rotate_folder`."""
+    for k in range(max(1, int(keep)) - 1, -1, -1):
+        if os.path.abspath(path) == os.path.abspath(generation(folder, k)):
+            return generation(folder, k + 1)
+    return path
 
 
 @contextlib.contextmanager

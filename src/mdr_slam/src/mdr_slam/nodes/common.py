@@ -77,13 +77,22 @@ class RunMarker:
             return False
         return bool(words) and words[0] == self.run_id and os.path.exists(autosave)
 
-    def write(self) -> bool:
+    def session(self) -> str:
+        """The mapping session the marker's node was in ("" when it did not say)."""
+        try:
+            with open(self.path) as f:
+                words = f.read().split()
+        except (IOError, OSError):
+            return ""
+        return words[2] if len(words) > 2 else ""
+
+    def write(self, session: str = "") -> bool:
         try:
             d = os.path.dirname(self.path)
             if d and not os.path.isdir(d):
                 os.makedirs(d)
             with open(self.path, "w") as f:
-                f.write("%s %d\n" % (self.run_id, os.getpid()))
+                f.write("%s %d %s\n" % (self.run_id, os.getpid(), session or "-"))
             return True
         except (IOError, OSError) as e:
             rospy.logwarn("%s: cannot write %s (%s): no resume after a crash", self.node,
@@ -96,6 +105,15 @@ class RunMarker:
             os.unlink(self.path)
         except OSError:
             pass
+
+
+def base_session(param: str = "") -> str:
+    """The mapping session a node starts in: its ``~session_id`` parameter (mdr.launch gives both
+    nodes one id per launch), else the ROS session's ``/run_id`` (shared by every node of a
+    roscore), else a fresh id. A reset moves on to ``next_session_id`` (mdr_slam.io.map_dir)."""
+    from ..io.map_dir import new_session_id
+    s = str(param or "").strip() or str(rospy.get_param("/run_id", "") or "").strip()
+    return "".join(c for c in s if not c.isspace()) or new_session_id()
 
 
 class Throttled:

@@ -42,6 +42,7 @@ class PoseNodeConfig(Config):
     localization: bool = False         # with load_map: track against it only (no new keyframes, files unchanged)
     map_dir: str = ""                  # the map services' paths resolve inside it; "": $ROS_HOME/mdr_maps
     map_path: str = "last"             # map folder (in map_dir) of the autosave; a respawned node resumes it
+    session_id: str = ""               # mapping session written into the map files (mdr.launch: one per launch); "": /run_id
     allow_any_map_path: bool = False   # the services may also read and write outside map_dir
     resume: bool = True                # reload map_path's autosave after an unclean exit, and relocalize
     autosave: bool = True              # save the sparse map to map_path on shutdown ...
@@ -108,6 +109,7 @@ class FusionNodeConfig(Config):
     # files (writes are atomic: temporary file + rename)
     map_dir: str = ""               # the services' paths resolve inside it; "": $ROS_HOME/mdr_maps
     map_path: str = "last"          # map folder (in map_dir; or a .ply/.pcd file) of autosave and ~save_map
+    session_id: str = ""            # mapping session written into the map files (mdr.launch: one per launch); "": /run_id
     load_map: str = ""              # map folder (or .ply/.pcd file) to start from; "": empty
     localization: bool = False      # with load_map: its files are never written (no autosave)
     allow_any_map_path: bool = False  # the services may also read and write outside map_dir
@@ -115,7 +117,7 @@ class FusionNodeConfig(Config):
     resume: bool = True             # reload map_path after an unclean exit (see the module doc)
     autosave: bool = True           # save to map_path on shutdown
     autosave_period: float = 60.0   # s, also save periodically; 0: only on shutdown
-    mesh_path: str = "~/.ros/mdr_mesh.ply"  # ~export_mesh default target
+    mesh_path: str = "mdr_mesh.ply"  # ~export_mesh default target (relative: in map_dir)
     mesh_voxel: float = 0.02        # m, TSDF voxel of ~export_mesh
     mesh_width: int = 640           # px, depth images rendered for the TSDF ...
     mesh_height: int = 480          # px

@@ -59,10 +59,12 @@ from ..fusion.map_io import load_dense_map, save_dense_map
 from ..fusion.mesh import default_K, mesh_from_map, write_mesh
 from ..geometry import relative_motion
 from ..io.atomic import remove_stale_temporaries
-from ..io.map_dir import MapPathError, default_map_dir, map_files, resolve_map_path
+from ..io.map_dir import (ROTATE_KEEP, MapPathError, after_rotation, check_folder_sessions,
+                          default_map_dir, find_session, folder_lock, folder_sessions, map_files,
+                          next_session_id, resolve_map_path, session_folder)
 from ..nav import map_min_confidence, map_products
-from .common import (ClockWatch, RunMarker, StampGuard, Throttled, read_config, skip_future_stamp,
-                     transform_listener)
+from .common import (ClockWatch, RunMarker, StampGuard, Throttled, base_session, read_config,
+                     skip_future_stamp, transform_listener)
 from .config import NODE_CONFIGS, FusionNodeConfig
 from .health import ProcessHealth, update_diagnostics
 from .memdebug import start_from_env
@@ -115,8 +117,20 @@ class FusionNode:
             self.marker = RunMarker(self.map_path + ".running", "fusion_node")
             autosave_file = self.map_path
         path = resolve_map_path(cfg.load_map, self.map_dir, True) if cfg.load_map else ""
+        # the mapping session the files are written in (mdr_slam.io.map_dir): the launch's, a
+        # loaded folder's, or (respawned) the dead node's, whose autosave it resumes
+        self.session = base_session(cfg.session_id)
+        if path and os.path.isdir(path):
+            ok, note = check_folder_sessions(path)
+            if note:
+                rospy.logwarn("fusion_node: %s", note)
+            self.session = folder_sessions(path).get("dense") or self.session
         if cfg.resume and self.marker.crashed_before(autosave_file):
             path = self.map_path
+            if _is_folder(self.map_path):
+                self.session = self.marker.session() or \
+                    folder_sessions(self.map_path).get("dense") or self.session
+                path = find_session(self.map_path, self.session, "dense") or self.map_path
             rospy.logwarn("fusion_node: the previous fusion node of this session did not shut down "
                           "cleanly: resuming its autosave %s (integrations of at most the last "
                           "autosave_period = %.1f s before the crash are lost)", path,
@@ -130,7 +144,7 @@ class FusionNode:
         # localization never changes a map's files
         self.autosaving = cfg.autosave and not (cfg.localization and path)
         if self.autosaving:   # "running, not yet saved on a clean exit": what resume looks for
-            self.marker.write()
+            self.marker.write(self.session)
             for f in (autosave_file, autosave_file + ".anchors.json",
                       os.path.splitext(autosave_file)[0] + ".json"):
                 remove_stale_temporaries(f)
@@ -419,7 +433,7 @@ class FusionNode:
         path = path or self.map_path
         if _is_folder(path) and not fmt:
             with self.lock:
-                return path, save_dense_map(self.map, path)
+                return path, save_dense_map(self.map, path, self.session)
         if fmt:
             root, ext = os.path.splitext(path)
             if ext.lower() != "." + fmt.lower():
@@ -437,6 +451,40 @@ class FusionNode:
                 n = self.map.load(path, append=append)
         self.dirty = True
         return n
+
+    def autosave(self):
+        """The map into the autosave folder of its session (rotating ``map_path`` when another
+        session's maps are there: mdr_slam.io.map_dir.session_folder): (path, points, rotated).
+        A ``map_path`` naming a file is written as it is."""
+        if not _is_folder(self.map_path):
+            return self.save() + (False,)
+        # lock order: self.lock, then the folder's (reset holds self.lock while keeping the map)
+        with self.lock, folder_lock(self.map_path):
+            target, rotated = session_folder(self.map_path, self.session, "dense")
+            if rotated:
+                rospy.loginfo("fusion_node: %s held another session's maps: moved to %s.1 (%d "
+                              "generations kept)", self.map_path, self.map_path, ROTATE_KEEP)
+            return self.save(target) + (rotated,)
+
+    def _keep_before_clear(self, why: str):
+        """Before a reset or a load replaces the map: save it (the autosave of its session, so a
+        mistaken reset loses nothing): (note for the reply, rotated)."""
+        if not self.autosaving or len(self.map) == 0:
+            return "", False
+        try:
+            path, n, rotated = self.autosave()
+        except (IOError, OSError, ValueError) as e:
+            rospy.logerr("fusion_node: could not keep the map before the %s: %s", why, e)
+            return "; the map before it could not be kept: %s" % e, False
+        rospy.loginfo("fusion_node: %s: the map before it (%d points, session %s) is kept in %s",
+                      why, n, self.session, path)
+        return "; the map before it is kept in %s" % path, rotated
+
+    def _new_session(self, session: str = "") -> None:
+        """A new map begins: its files carry a new session id (``session``, else the next one)."""
+        self.session = session or next_session_id(self.session)
+        if self.autosaving:
+            self.marker.write(self.session)
 
     def _service_path(self, path: str) -> str:
         return resolve_map_path(path.strip() or self.cfg.map_path, self.map_dir,
@@ -472,25 +520,50 @@ class FusionNode:
             return LoadMapResponse(False, str(e), len(self.map))
         if not os.path.exists(path):
             return LoadMapResponse(False, "no such map: %r" % req.path, len(self.map))
+        warning = ""
+        if os.path.isdir(path):
+            # a folder's dense and sparse maps are loaded together: of two sessions they would
+            # not fit each other (one file of it can still be loaded by its path)
+            ok, why = check_folder_sessions(path)
+            if not ok:
+                return LoadMapResponse(False, "could not load %s: %s (load %s alone by its path "
+                                       "if that is what you want)" % (path, why, map_files(path)[
+                                           "dense"]), len(self.map))
+            warning = "; warning: " + why if why else ""
+        kept = ""
+        if not req.append:
+            kept, rotated = self._keep_before_clear("load_map")
+            if rotated and _is_folder(self.map_path):
+                path = after_rotation(path, self.map_path, ROTATE_KEEP)
         try:
             n = self.load(path, append=req.append)
         except (IOError, OSError, ValueError) as e:
             return LoadMapResponse(False, "could not load %s: %s" % (path, e), len(self.map))
+        if not req.append:   # the loaded map's session goes on (the pose node's load agrees)
+            self._new_session(folder_sessions(path).get("dense", "") if os.path.isdir(path) else "")
         note = self._pose_node_call("load_map", LoadMap, path, False) \
             if os.path.isdir(path) and not req.append else ""
-        return LoadMapResponse(True, "map has %d points%s" % (n, note), n)
+        return LoadMapResponse(True, "map has %d points%s%s%s" % (n, kept, warning, note), n)
 
     def srv_reset(self, _req):
+        """Clear the map; the map there was is kept first (autosaved into its session's folder,
+        which the new session's first autosave then rotates to ``last.1``)."""
         with self.lock:
+            kept, _ = self._keep_before_clear("reset")
+            self._new_session()
             self.map.reset()
         self.guard = StampGuard()
         self.views = []
         self.dirty = True
-        return TriggerResponse(True, "map cleared")
+        return TriggerResponse(True, "map cleared%s" % kept)
 
     def srv_mesh(self, req):
         cfg = self.cfg
-        path = os.path.expanduser(req.path.strip() or cfg.mesh_path)
+        try:   # the caller's path inside map_dir (as the map services'); the parameter's anywhere
+            path = resolve_map_path(req.path, self.map_dir, cfg.allow_any_map_path) \
+                if req.path.strip() else resolve_map_path(cfg.mesh_path, self.map_dir, True)
+        except MapPathError as e:
+            return ExportMeshResponse(False, str(e), "", 0, 0)
         voxel = float(req.voxel_length) if req.voxel_length > 0 else cfg.mesh_voxel
         with self.lock:
             cloud = self.map.to_cloud(cfg.mesh_min_confidence if self.map.confidence else 0)
@@ -515,7 +588,7 @@ class FusionNode:
         if len(self.map) == 0:
             return
         try:
-            path, n = self.save()
+            path, n, _ = self.autosave()
             rospy.logdebug("fusion_node: autosaved %d points to %s", n, path)
         except (IOError, OSError, ValueError) as e:
             self.warn("autosave", "autosave to %s failed: %s" % (self.map_path, e), "err")
@@ -527,7 +600,7 @@ class FusionNode:
         with self.lock:
             try:
                 if self.autosaving and len(self.map):
-                    path, n = self.save()
+                    path, n, _ = self.autosave()
                     print("fusion_node: saved %d map points to %s" % (n, path), flush=True)
                 if self.autosaving:
                     self.marker.clear()  # a clean exit: nothing to resume

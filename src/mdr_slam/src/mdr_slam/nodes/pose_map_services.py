@@ -16,10 +16,12 @@ from std_srvs.srv import Trigger, TriggerResponse
 
 from ..conversions import ConversionError, pose_to_matrix
 from ..io.atomic import remove_stale_temporaries
-from ..io.map_dir import MapPathError, default_map_dir, map_files, resolve_map_path
+from ..io.map_dir import (ROTATE_KEEP, MapPathError, after_rotation, check_folder_sessions,
+                          default_map_dir, find_session, folder_lock, folder_sessions, map_files,
+                          next_session_id, resolve_map_path, session_folder)
 from ..pose import make_system
 from ..pose.map_io import PoseMapError, check_pose_map, load_pose_map, save_pose_map
-from .common import RunMarker
+from .common import RunMarker, base_session
 
 __all__ = ["PoseMapServices"]
 
@@ -37,15 +39,24 @@ class PoseMapServices:
         self.autosave_folder = resolve_map_path(p.map_path, self.map_dir, allow_outside=True)
         self.start_map = resolve_map_path(p.load_map, self.map_dir, True) if p.load_map else ""
         self.marker = RunMarker(os.path.join(self.autosave_folder, "pose_node.running"), "pose_node")
+        # the mapping session the files are written in (mdr_slam.io.map_dir): the launch's, a
+        # loaded map's, or (respawned) the dead node's, whose autosave it resumes
+        self.session = base_session(p.session_id)
+        if self.start_map:
+            self._check_folder(self.start_map)
+            self.session = folder_sessions(self.start_map).get("pose") or self.session
         if p.resume and self.marker.crashed_before(map_files(self.autosave_folder)["pose"]):
+            self.session = self.marker.session() or \
+                folder_sessions(self.autosave_folder).get("pose") or self.session
+            self.start_map = find_session(self.autosave_folder, self.session, "pose") or \
+                self.autosave_folder
             rospy.logwarn("pose_node: the previous pose node of this session did not shut down "
                           "cleanly: resuming its autosave %s and relocalizing in it",
-                          self.autosave_folder)
-            self.start_map = self.autosave_folder
+                          self.start_map)
         # localization never changes a map: nothing to autosave
         self.autosaving = p.autosave and not (p.localization and self.start_map)
         if self.autosaving:
-            self.marker.write()
+            self.marker.write(self.session)
             remove_stale_temporaries(map_files(self.autosave_folder)["pose"])
         self.relocalized_at = None
         self.map_load_error = ""
@@ -95,11 +106,55 @@ class PoseMapServices:
             raise PoseMapError("nothing mapped yet")
         with self.save_lock:
             os.makedirs(folder, exist_ok=True)
-            return save_pose_map(system, map_files(folder)["pose"])
+            return save_pose_map(system, map_files(folder)["pose"], session_id=self.session)
+
+    def _autosave(self, system=None):
+        """The sparse map into the autosave folder of its session (rotating the folder when
+        another session's maps are there: mdr_slam.io.map_dir.session_folder): (folder, summary,
+        whether the folder was rotated)."""
+        if system is None:   # lock order: self.lock, then the folder's (as on_reset)
+            with self.lock:
+                system = self.system
+        with folder_lock(self.autosave_folder):
+            target, rotated = session_folder(self.autosave_folder, self.session, "pose")
+            if rotated:
+                rospy.loginfo("pose_node: %s held another session's maps: moved to %s.1 (%d "
+                              "generations kept)", self.autosave_folder, self.autosave_folder,
+                              ROTATE_KEEP)
+            return target, self._save_map(target, system), rotated
+
+    def _keep_before_clear(self, why: str):
+        """Before a reset or a load replaces the map: save it (the autosave of its session, so a
+        mistaken reset loses nothing; mdr_slam.io.map_dir): (note for the reply, rotated)."""
+        system = self.system
+        if not self.autosaving or getattr(system, "map", None) is None or \
+                not system.map.keyframes:
+            return "", False
+        try:
+            target, info, rotated = self._autosave(system)
+        except (PoseMapError, IOError, OSError, ValueError) as e:
+            rospy.logerr("pose_node: could not keep the map before the %s: %s", why, e)
+            return "; the map before it could not be kept: %s" % e, False
+        rospy.loginfo("pose_node: %s: the map before it (%d keyframes, session %s) is kept in %s",
+                      why, info["keyframes"], self.session, target)
+        return "; the map before it is kept in %s" % target, rotated
+
+    def _new_session(self, session: str = "") -> None:
+        """A new map begins: its files carry a new session id (``session``, else the next one)."""
+        self.session = session or next_session_id(self.session)
+        if self.autosaving:
+            self.marker.write(self.session)
+
+    def _check_folder(self, folder: str) -> str:
+        """A warning when the folder's dense and sparse maps are of different sessions."""
+        ok, note = check_folder_sessions(folder)
+        if note:
+            (rospy.loginfo if ok else rospy.logwarn)("pose_node: %s", note)
+        return note
 
     def on_autosave(self, _event=None) -> None:
         try:
-            self._save_map(self.autosave_folder)
+            self._autosave()
         except PoseMapError:
             pass   # nothing mapped yet
         except (IOError, OSError, ValueError) as e:
@@ -126,12 +181,19 @@ class PoseMapServices:
             return LoadMapResponse(False, str(e), 0)
         if not os.path.isfile(map_files(folder)["pose"]):
             return LoadMapResponse(False, "no sparse map in %s" % folder, 0)
+        # only the sparse map is loaded here: a folder whose parts disagree loads with a warning
+        # (the fusion node's load_map, which loads both, refuses it)
+        note = self._check_folder(folder)
+        note = "; warning: " + note if note else ""
         if self.camera is None:   # loaded with the first frame: check the file now
             try:
                 check_pose_map(map_files(folder)["pose"])
             except PoseMapError as e:
                 return LoadMapResponse(False, "could not load %s: %s" % (folder, e), 0)
         with self.lock:
+            kept, rotated = self._keep_before_clear("load_map")
+            if rotated:   # the folder asked for was a generation of the autosave: it moved
+                folder = after_rotation(folder, self.autosave_folder, ROTATE_KEEP)
             old, self.start_map = self.start_map, folder
             system = None
             if self.camera is not None:
@@ -147,8 +209,10 @@ class PoseMapServices:
             self.system = system          # None: the map is loaded with the first frame
             self.kf_poses = {}
             self.relocalized_at = None
+            # the loaded map's session goes on (the fusion node, loading the folder too, agrees)
+            self._new_session(folder_sessions(folder).get("pose") or "")
         n = 0 if system is None else int(np.count_nonzero(~system.map.mp_bad[: system.map.n]))
-        return LoadMapResponse(True, "loaded %s; relocalizing" % folder, n)
+        return LoadMapResponse(True, "loaded %s; relocalizing%s%s" % (folder, kept, note), n)
 
     def on_initialpose(self, msg) -> None:
         """A base pose in the map frame (rviz's 2D Pose Estimate), tried on the next frame while
@@ -172,8 +236,11 @@ class PoseMapServices:
         rospy.loginfo("pose_node: initial pose received; tried when tracking is LOST")
 
     def on_reset(self, _req):
-        """Forget the map and start a new one with the next frame (nothing is saved)."""
+        """Start a new map with the next frame. The map there was is kept first (autosaved into
+        its session's folder; the new session's autosave then rotates ``last`` to ``last.1``)."""
         with self.lock:
+            kept, _ = self._keep_before_clear("reset")
+            self._new_session()
             if self.system is not None:
                 self.system.shutdown()
             self.system = None
@@ -181,6 +248,7 @@ class PoseMapServices:
             self.kf_poses = {}
             self.T_map_odom = np.eye(4)
             self.relocalized_at = None
-        rospy.loginfo("pose_node: reset: a new map starts with the next frame")
-        return TriggerResponse(True, "a new map starts with the next frame")
+        rospy.loginfo("pose_node: reset: a new map (session %s) starts with the next frame",
+                      self.session)
+        return TriggerResponse(True, "a new map starts with the next frame%s" % kept)
 

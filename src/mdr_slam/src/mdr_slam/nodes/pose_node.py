@@ -30,6 +30,7 @@ from ..conversions import (ConversionError, camera_info_to_model, image_msg_to_m
                            matrix_to_pose, matrix_to_pose_stamped, matrix_to_transform_stamped,
                            pose_stamped_to_matrix, transform_stamped_to_matrix)
 from ..geometry import body_twist, inv_T, is_valid_T, parse_transform, rotation_angle
+from ..io.map_dir import MapPathError, resolve_map_path
 from ..io.trajectory import write_kitti_poses, write_tum
 from ..pose import System, TrackerConfig, make_system
 from ..pose.factory import limit_library_threads
@@ -589,6 +590,7 @@ class OrbNode(PoseMapServices):
             self.warn("back", "time went backwards (bag loop?): starting a new map")
             with self.lock:   # frames of the old map still waiting are dropped by track()
                 self._save_on_exit()
+                self._new_session()   # the old timeline's map stays in its session's folder
                 self.system.shutdown()
                 self.system = None
                 self.T_map_odom = np.eye(4)
@@ -742,7 +744,17 @@ class OrbNode(PoseMapServices):
         return n
 
     def on_save(self, req):
-        path = req.path or self.p.trajectory_path or "trajectory.txt"
+        """``~save_trajectory``: a path given by the caller resolves inside ``map_dir`` (one
+        outside is refused unless ``allow_any_map_path``, as for the map services); none: the
+        ``trajectory_path`` parameter (the operator's), else ``trajectory.txt`` in ``map_dir``."""
+        try:
+            if req.path.strip():
+                path = resolve_map_path(req.path, self.map_dir, self.p.allow_any_map_path)
+            else:
+                path = resolve_map_path(self.p.trajectory_path or "trajectory.txt", self.map_dir,
+                                        True)
+        except MapPathError as e:
+            return SaveTrajectoryResponse(False, str(e), req.path, 0)
         with self.lock:
             try:
                 n = self.save_trajectory(path, req.format)
@@ -754,9 +766,8 @@ class OrbNode(PoseMapServices):
         if self.autosaving and getattr(self.system, "map", None) is not None and \
                 self.system.map.keyframes:
             try:
-                info = self._save_map(self.autosave_folder, self.system)
-                rospy.loginfo("pose_node: saved %d keyframes to %s", info["keyframes"],
-                              self.autosave_folder)
+                folder, info, _ = self._autosave(self.system)
+                rospy.loginfo("pose_node: saved %d keyframes to %s", info["keyframes"], folder)
             except (PoseMapError, IOError, OSError, ValueError) as e:
                 rospy.logerr("pose_node: could not save the sparse map: %s", e)
         if self.p.trajectory_path and self.system is not None:
