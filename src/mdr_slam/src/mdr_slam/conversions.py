@@ -33,6 +33,7 @@ from std_msgs.msg import Header
 
 from .camera import CameraModel
 from .geometry import make_T, quat_to_R, R_to_quat
+from .msg_checks import pose_problem
 
 __all__ = [
     "ConversionError", "image_to_numpy", "image_to_mono8", "image_msg_to_mono8", "numpy_to_image",
@@ -423,6 +424,9 @@ def pose_to_matrix(p: Pose) -> np.ndarray:
         raise ConversionError("pose has non-finite values: t=%s q=%s" % (t, q))
     if np.linalg.norm(q) < 1e-6:
         raise ConversionError("pose quaternion is zero")
+    why = pose_problem(p)   # a quaternion far from unit norm is garbage, not a rotation
+    if why:
+        raise ConversionError(why)
     return make_T(quat_to_R(q), t)
 
 

@@ -59,6 +59,7 @@ from ..fusion.map_io import load_dense_map, save_dense_map
 from ..fusion.mesh import default_K, mesh_from_map, write_mesh
 from ..geometry import relative_motion
 from ..io.atomic import remove_stale_temporaries
+from ..msg_checks import cloud_problem
 from ..io.map_dir import (ROTATE_KEEP, MapPathError, after_rotation, check_folder_sessions,
                           default_map_dir, find_session, folder_lock, folder_sessions, map_files,
                           next_session_id, resolve_map_path, session_folder)
@@ -225,8 +226,16 @@ class FusionNode:
         self.warn("back", "time went backwards to %.3f (bag loop?): keyframe anchors (%d points) "
                   "and tracking states reset, the map (%d points) stays" % (stamp, n, len(self.map)))
 
+    def _bad_cloud(self, msg) -> bool:
+        """An absurd cloud (size, field layout, data length: mdr_slam.msg_checks), refused before
+        anything is allocated or waited for."""
+        why = cloud_problem(msg)
+        if why:
+            self.warn("badcloud", "cloud refused: %s" % why)
+        return bool(why)
+
     def on_cloud(self, msg):
-        if self._from_the_future(msg):
+        if self._bad_cloud(msg) or self._from_the_future(msg):
             return
         try:
             ts = self.tf_buffer.lookup_transform(self.cfg.map_frame, msg.header.frame_id,
@@ -252,7 +261,7 @@ class FusionNode:
                                  "cloud")
 
     def on_cloud_pose(self, cloud, pose):
-        if self._from_the_future(cloud):
+        if self._bad_cloud(cloud) or self._from_the_future(cloud):
             return
         try:
             T = pose_stamped_to_matrix(pose)

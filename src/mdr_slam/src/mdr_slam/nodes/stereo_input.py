@@ -8,7 +8,10 @@
   (waiting for it until the next pair), else the latest one;
 - pairing by :class:`mdr_slam.stereo_sync.StereoSync` (approximate time, ``sync_tolerance``),
   with a throttled warning naming the topics and the stamp offsets when images arrive but no pair
-  forms (the counterpart of rtabmap_ros's "did not receive data since 5 seconds").
+  forms (the counterpart of rtabmap_ros's "did not receive data since 5 seconds");
+- bounded input (mdr_slam.msg_checks): an image larger than MAX_IMAGE_DIM, or whose size
+  disagrees with its side's camera_info, and an absurd camera_info are refused on arrival with
+  a throttled warning, before they reach the pairing queues.
 """
 from __future__ import annotations
 
@@ -20,6 +23,7 @@ from typing import Callable
 import rospy
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
+from ..msg_checks import camera_info_problem, image_problem
 from ..stereo_sync import StereoSync
 
 TRANSPORTS = ("raw", "compressed")
@@ -61,6 +65,10 @@ class StereoInput:
         return self.topics["left"]
 
     def _on_info(self, msg, side: str) -> None:
+        why = camera_info_problem(msg)
+        if why:
+            self.warn("badinfo", "%s: %s camera_info refused: %s" % (self.node, side, why))
+            return
         with self.lock:
             self.infos[side].append((msg.header.stamp.to_sec(), msg))
             held, self._held = self._held, None
@@ -68,6 +76,11 @@ class StereoInput:
                 self._deliver(*held)
 
     def _on_image(self, msg, side: str) -> None:
+        q = self.infos[side] if self.with_info else ()
+        why = image_problem(msg, q[-1][1] if q else None)
+        if why:
+            self.warn("badimage", "%s: %s image refused: %s" % (self.node, side, why))
+            return
         with self.lock:
             pairs = self.sync.add(side, msg.header.stamp.to_sec(), msg, now=time.monotonic())
             for _tl, left, _tr, right in pairs:
