@@ -1,6 +1,7 @@
 """``mdr sim``: render a simulated stereo sequence with exact ground truth to a bag.
 
-    mdr sim --scene office --duration 30 --out DIR [--seed 0] [--rate 20] [--distort]
+    mdr sim --scene office|corridor|garage|floor [--duration SEC] [--laps N] --out DIR
+            [--seed 0] [--rate 20] [--distort]
             [--contrast C] [--no-specular] [--noise S] [--save-depth [EVERY]] [--max-range 8]
             [--driver zed|realsense|stereo_image_proc [--compressed jpeg|png]
              [--right-lag MS] [--no-odom] [--odom-drift SCALE YAW_DEG_PER_M] [--odom-rate HZ]]
@@ -9,6 +10,11 @@ Without --driver the bag holds mono8 pairs, camera_info, /ground_truth/pose and 
 ground_truth_camera. With --driver it holds only what that camera driver and a wheeled base record
 (mdr_slam.sim.driver; topics, frames and T_base_cam in DIR/driver.yaml); the ground truth stays in
 groundtruth.tum, gt_map.ply and scene.yaml.
+
+--duration is the duration of ONE lap (default 30 s; the floor's ~105 m route: its whole length
+at ~0.9 m/s, about 128 s). --laps N drives a loop trajectory (office, garage, floor) N times end
+to end, each later lap on a slightly different path, so the sequence lasts N x duration;
+scene.yaml lists every lap's stamps and frames. A corridor drive is not a loop: --laps refuses it.
 """
 from __future__ import annotations
 
@@ -20,16 +26,23 @@ def add_parser(subparsers, name: str = "sim", help_text: str = ""):
     p = subparsers.add_parser(
         name, help=help_text, description=help_text + ". Writes DIR/sequence.bag, "
         "groundtruth.tum, gt_map.ply, scene.yaml and optionally gt_depth/%%06d.npz.")
-    p.add_argument("--scene", default="office", choices=["office", "corridor", "garage"],
-                   help="scene (default office)")
-    p.add_argument("--duration", type=float, default=30.0, help="seconds (default 30)")
+    p.add_argument("--scene", default="office", choices=["office", "corridor", "garage", "floor"],
+                   help="scene (default office; floor: a 32 x 20 m building floor, corridor "
+                        "ring and two rooms, walked along a ~105 m route)")
+    p.add_argument("--duration", type=float, default=None,
+                   help="seconds of ONE lap (default 30; floor: the whole route at ~0.9 m/s, "
+                        "~128 s; a shorter one walks the route's start only)")
+    p.add_argument("--laps", type=int, default=1, metavar="N",
+                   help="patrol: drive the scene's loop N times end to end, each lap on a "
+                        "slightly different path, fresh noise (N x duration seconds; office, "
+                        "garage, floor; default 1)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--seed", type=int, default=0, help="scene/trajectory/noise seed (default 0)")
     p.add_argument("--rate", type=float, default=20.0, help="frame rate, Hz (default 20)")
     p.add_argument("--trajectory", default=None,
-                   choices=["loop", "pure_rotation", "loop+pure_rotation", "corner"],
+                   choices=["loop", "pure_rotation", "loop+pure_rotation", "corner", "route"],
                    help="trajectory kind (default: the scene's: office/garage loop+pure_rotation,"
-                        " corridor corner)")
+                        " corridor corner, floor route)")
     p.add_argument("--distort", action="store_true",
                    help="write RAW images with EuRoC-like radial-tangential distortion; "
                         "camera_info D, K, R, P rectify them")
@@ -90,8 +103,9 @@ def add_parser(subparsers, name: str = "sim", help_text: str = ""):
 def run(args) -> int:
     # the simulator when the command runs: `mdr --help` imports this module
     from ..sim import generate, generate_driver
-    if args.duration <= 0 or args.rate <= 0 or args.map_cell <= 0 or args.scale <= 0:
-        print("mdr sim: --duration, --rate, --map-cell and --scale must be positive",
+    if (args.duration is not None and args.duration <= 0) or args.rate <= 0 or \
+            args.map_cell <= 0 or args.scale <= 0 or args.laps < 1:
+        print("mdr sim: --duration, --rate, --map-cell, --scale and --laps must be positive",
               file=sys.stderr)
         return 2
     last = [time.time()]
@@ -106,7 +120,7 @@ def run(args) -> int:
                   specular=args.specular, noise=args.noise, save_depth=args.save_depth,
                   max_range=args.max_range, scale=args.scale, trajectory=args.trajectory,
                   exposure=args.exposure, blur=args.blur, workers=args.workers,
-                  map_cell=args.map_cell, progress=progress)
+                  map_cell=args.map_cell, progress=progress, laps=args.laps)
     driver = getattr(args, "driver", "none")
     if driver == "none" and (args.compressed or args.right_lag is not None):
         print("mdr sim: --compressed and --right-lag need --driver", file=sys.stderr)
@@ -124,8 +138,10 @@ def run(args) -> int:
         print("mdr sim: %s" % e, file=sys.stderr)
         return 2
     t = s["timing"]
-    print("%s: %d frames (%s, %s) -> %s\n  gt_map %d points; wall %.1f s, render %.1f ms/frame "
+    print("%s: %d frames (%s%s, %s) -> %s\n  gt_map %d points; wall %.1f s, render %.1f ms/frame "
           "(median, %d workers)" % (s["scene"], s["n_frames"], s["trajectory"],
+                                    " x %d laps of %.1f s" % (len(s["laps"]), s["lap_duration"])
+                                    if len(s["laps"]) > 1 else "",
                                     "raw distorted" if args.distort else "rectified",
                                     s["out_dir"], s["n_map_points"], t["wall_s"],
                                     t["render_ms_per_frame_median"], t["workers"]))

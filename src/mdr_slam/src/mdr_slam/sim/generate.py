@@ -7,7 +7,7 @@ writes the bag in frame order and accumulates the ground-truth map.
 Outputs in ``out_dir``: ``sequence.bag`` (mono8 stereo + camera_info, /ground_truth/pose, /tf),
 ``groundtruth.tum``, ``gt_map.ply`` (1 cm cells of every surface the left camera saw within
 ``max_range``: x y z nx ny nz surface), optional ``gt_depth/%06d.npz`` (depth, surface) and
-``scene.yaml`` (camera, scene, seed, segments, label legend, timing). A ``frame_writer`` hook
+``scene.yaml`` (camera, scene, seed, segments, laps, label legend, timing). A ``frame_writer`` hook
 replaces the bag's content (:mod:`.driver` writes it the way a camera driver records).
 
 Every pose (bag ``/ground_truth/pose`` and ``/tf`` map -> ground_truth_camera, TUM file) is the
@@ -152,20 +152,26 @@ def _render_frame(i: int):
     return i, f["left"], f["right"], idx.astype(np.int64), ms
 
 
-def generate(out_dir: str, scene="office", duration: float = 30.0, seed: int = 0,
+def generate(out_dir: str, scene="office", duration: Optional[float] = None, seed: int = 0,
              rate: float = 20.0, distort: bool = False, contrast: float = 4.0,
              specular: bool = True, noise: float = 2.0, save_depth: int = 0,
              max_range: float = 8.0, camera=None, scale: float = 1.0, trajectory=None,
              exposure: bool = False, blur: int = 0, blur_time: float = 0.01,
              workers: Optional[int] = None, map_cell: float = 0.01,
              progress: Optional[Callable[[int, int], None]] = None,
-             frame_writer: Optional[Callable] = None) -> dict:
+             frame_writer: Optional[Callable] = None, laps: int = 1) -> dict:
     """Render a sequence to ``out_dir``; returns a summary dict (paths, counts, timing).
 
     ``scene`` is a name or a :class:`Scene`; ``trajectory`` a kind (default: the scene's);
     ``save_depth`` = N writes gt_depth for every N-th frame (0: none); ``blur`` = K averages K
     sub-poses over ``blur_time`` s centred on each stamp; ``exposure`` varies the gain;
     ``camera`` overrides the EuRoC-like default (``scale`` shrinks it, ``distort`` = raw images).
+    ``duration`` is one lap's (default: 30 s, the floor's route: its whole length at its speed);
+    ``laps`` = N patrols a loop trajectory N times (N x duration seconds): the summary's
+    ``laps`` gives each lap's stamps ``t0``, ``t1`` and ``frames`` [first, end) (frame
+    indices), each segment its ``lap``. Frame noise is seeded by the
+    frame index, so every lap gets fresh noise; the gt_map marks a bit per scene cell, so its
+    memory does not grow with the laps.
 
     ``frame_writer(bag_path, camera, stamps, Ts, traj)`` replaces the default bag content
     (images + ground truth, :class:`_GroundTruthBagWriter`): a context manager whose
@@ -183,7 +189,7 @@ def generate(out_dir: str, scene="office", duration: float = 30.0, seed: int = 0
     if distort and not raw:
         raise ValueError("distort=True needs a camera with distortion (sim_camera(distort=True))")
     traj = build_trajectory(trajectory if trajectory is not None else sc, duration, seed,
-                            scene=sc)
+                            scene=sc, laps=laps)
     stamps = traj.stamps(rate, STAMP0)
     rel = stamps - STAMP0
     Ts = traj.poses(rel)
@@ -261,8 +267,13 @@ def generate(out_dir: str, scene="office", duration: float = 30.0, seed: int = 0
                        "D": m.D.tolist(), "R": m.R.ravel().tolist(), "P": m.P.ravel().tolist()}
                 for side, m in (("left", cam.left), ("right", cam.right))}
     summary = {
-        "scene": sc.name, "seed": int(seed), "duration": float(duration), "n_frames": int(n),
-        "trajectory": traj.kind, "stamp0": STAMP0,
+        "scene": sc.name, "seed": int(seed), "duration": float(traj.duration),
+        "n_frames": int(n), "trajectory": traj.kind, "stamp0": STAMP0,
+        "lap_duration": float(traj.lap_duration),
+        "laps": [{"lap": int(k), "t0": float(STAMP0 + a), "t1": float(STAMP0 + b),
+                  "frames": [int(np.searchsorted(rel, a - 1e-9)),
+                             int(np.searchsorted(rel, b - 1e-9))]}
+                 for k, a, b in traj.laps],
         "camera": {"width": int(W), "height": int(H), "fx": cam.fx, "fy": cam.fy, "cx": cam.cx,
                    "cy": cam.cy, "baseline": cam.baseline, "rate": float(rate),
                    "rectified_output": not raw, "distortion": dist},
@@ -274,7 +285,8 @@ def generate(out_dir: str, scene="office", duration: float = 30.0, seed: int = 0
         "ground_truth": {"topic": "/ground_truth/pose", "frame": "map",
                          "child": "rectified left camera optical frame (z fwd, x right, y down)",
                          "depth": "Z along the rectified left optical axis, metres, 0 = none"},
-        "segments": [{"name": nme, "t0": float(STAMP0 + a), "t1": float(STAMP0 + b)}
+        "segments": [{"name": nme, "t0": float(STAMP0 + a), "t1": float(STAMP0 + b),
+                      "lap": int(traj.lap_of(0.5 * (a + b))[0])}
                      for nme, a, b in traj.segments],
         "scene_info": sc.summary(),
         "files": {"bag": "sequence.bag", "groundtruth": "groundtruth.tum",

@@ -7,6 +7,10 @@ and right images agree) and a surface label. The scenes are built to be hard the
 indoor sequences are: large LOW-TEXTURE walls/floors/ceilings whose contrast is a parameter, a few
 WELL-TEXTURED surfaces (posters, book shelves, floor mats) and an optional SPECULAR band whose
 highlight moves with the camera (a reflected line light), which a stereo matcher cannot match.
+
+Scenes: ``office`` (8 x 6 m room), ``corridor`` (L-shaped, 20 + 19 m), ``garage`` (24 x 16 m
+hall) and ``floor`` (a 32 x 20 m building floor: a corridor ring round a block of rooms, two of
+them open, whose default trajectory is a ~105 m route through both and back to its start).
 """
 from __future__ import annotations
 
@@ -26,7 +30,7 @@ LABEL_SPECULAR = 3
 LABELS = {LABEL_NONE: "nothing", LABEL_LOW_TEXTURE: "low_texture", LABEL_TEXTURED: "textured",
           LABEL_SPECULAR: "specular"}
 
-SCENES = ("office", "corridor", "garage")
+SCENES = ("office", "corridor", "garage", "floor")
 TILE = 512             # texels per texture tile side (all tiles, so the atlas is arithmetic)
 LIGHTMAP_STEP = 0.1   # m; diffuse shading varies slowly, a coarse baked grid is exact enough
 
@@ -512,13 +516,136 @@ def _garage(b: _Builder, specular: bool):
                                                         "radii": (6.0, 2.8), "height": 1.35}
 
 
+def _wall(b: _Builder, axis: int, coord: float, facing_sign: int, s0: float, s1: float, H: float,
+          doors=(), door_h: float = 2.1, base=None, name: str = "wall"):
+    """A one-sided wall ``x = coord`` (axis 0) or ``y = coord`` (axis 1) from s0 to s1, facing
+    ``facing_sign``, with doorway openings ``doors`` [(d0, d1), ...]: the solid parts and a
+    lintel above each opening (walls have no thickness, so an opening needs no jambs)."""
+    base = base if base is not None else float(b.rng.uniform(165, 182))
+    cuts = [s0] + [v for d in sorted(doors) for v in d] + [s1]
+    parts = [(cuts[i], cuts[i + 1], 0.0, H) for i in range(0, len(cuts), 2)]
+    parts += [(d0, d1, door_h, H) for d0, d1 in doors]
+    for a0, a1, z0, z1 in parts:
+        if a1 - a0 < 1e-6:
+            continue
+        if axis == 0:
+            p0, p1, p2 = (coord, a0, z0), (coord, a1, z0), (coord, a0, z1)
+            facing = (coord + facing_sign, 0.5 * (a0 + a1), 0.5 * (z0 + z1))
+        else:
+            p0, p1, p2 = (a0, coord, z0), (a1, coord, z0), (a0, coord, z1)
+            facing = (0.5 * (a0 + a1), coord + facing_sign, 0.5 * (z0 + z1))
+        b.add_rect(p0, p1, p2, facing, base=base, name=name)
+
+
+def _floor(b: _Builder, specular: bool):
+    """A building floor (32 x 20 m): a 2.4 m wide corridor ring around a block of rooms. Two
+    rooms open onto the corridor through two doorways each (a lab on the south side, a meeting
+    room on the north side); the other offices are closed doors. Only surfaces a camera in the
+    corridor or the two rooms can see exist (walls have no thickness, one rect per visible side),
+    which keeps the rect count near the garage's."""
+    L, W, H, c = 32.0, 20.0, 2.7, 2.4
+    lab = (8.0, c, 16.0, 8.8)                 # x0, y0, x1, y1
+    meet = (17.0, 11.2, 25.0, W - c)
+    lab_doors = ((8.7, 10.3), (13.7, 15.3))
+    meet_doors = ((17.7, 19.3), (22.7, 24.3))
+    b.add_rect((0, 0, 0), (L, 0, 0), (0, W, 0), (1, 1, 1), base=102, name="floor")
+    b.add_rect((0, 0, H), (L, 0, H), (0, W, H), (1, 1, 0), base=205, name="ceiling")
+    # building shell, facing in
+    _wall(b, 1, 0.0, +1, 0, L, H, name="outer_s")
+    _wall(b, 1, W, -1, 0, L, H, name="outer_n")
+    _wall(b, 0, 0.0, +1, 0, W, H, name="outer_w")
+    _wall(b, 0, L, -1, 0, W, H, name="outer_e")
+    # the room block's corridor faces, with the two rooms' doorways
+    _wall(b, 1, c, -1, c, L - c, H, doors=lab_doors, name="block_s")
+    _wall(b, 1, W - c, +1, c, L - c, H, doors=meet_doors, name="block_n")
+    _wall(b, 0, c, -1, c, W - c, H, name="block_w")
+    _wall(b, 0, L - c, +1, c, W - c, H, name="block_e")
+    # the two rooms' insides
+    for (x0, y0, x1, y1), doors, door_side, nm in ((lab, lab_doors, 0, "lab"),
+                                                   (meet, meet_doors, 1, "meeting")):
+        _wall(b, 1, y0, +1, x0, x1, H, doors=doors if door_side == 0 else (), name=nm + "_s")
+        _wall(b, 1, y1, -1, x0, x1, H, doors=doors if door_side == 1 else (), name=nm + "_n")
+        _wall(b, 0, x0, +1, y0, y1, H, name=nm + "_w")
+        _wall(b, 0, x1, -1, y0, y1, H, name=nm + "_e")
+    # closed office doors along the corridor (low texture, darker)
+    for x in (4.0, 18.5, 23.0, 26.5):
+        b.on_wall(1, c, -1, x, x + 0.9, 0.0, 2.05, "low", base=112, name="door")
+    for x in (4.5, 10.0, 13.5):
+        b.on_wall(1, W - c, +1, x, x + 0.9, 0.0, 2.05, "low", base=112, name="door")
+    for y in (6.0, 12.5):
+        b.on_wall(0, c, -1, y, y + 0.9, 0.0, 2.05, "low", base=112, name="door")
+        b.on_wall(0, L - c, +1, y, y + 0.9, 0.0, 2.05, "low", base=112, name="door")
+    # posters / notice boards every few metres, and one at every corridor end the camera
+    # walks towards (so no straight stretch stares at a blank wall)
+    # (one facing each doorway the route leaves a room by; none over the specular band)
+    for x in (2.5, 7.0, 11.5, 14.1, 27.5):
+        b.on_wall(1, 0.0, +1, x, x + 0.8, 1.0, 1.9, "poster", name="poster_s")
+    for x in (6.5, 11.5, 14.5, 18.1, 21.5, 26.0):
+        b.on_wall(1, W, -1, x, x + 0.8, 1.0, 1.9, "poster", name="poster_n")
+    for y in (3.5, 9.0, 15.0):
+        b.on_wall(0, L, -1, y, y + 0.8, 1.0, 1.9, "poster", name="poster_e")
+        b.on_wall(0, 0.0, +1, y + 1.5, y + 2.3, 1.0, 1.9, "poster", name="poster_w")
+    b.on_wall(0, L, -1, 0.4, 2.0, 0.8, 2.0, "poster", name="end_se")
+    b.on_wall(1, W, -1, L - 2.0, L - 0.4, 0.8, 2.0, "poster", name="end_ne")
+    b.on_wall(0, 0.0, +1, W - 2.0, W - 0.4, 0.8, 2.0, "poster", name="end_nw")
+    b.on_wall(1, 0.0, +1, 0.4, 2.0, 0.8, 2.0, "books", base=120, name="end_sw")
+    b.on_wall(0, L - c, +1, 8.5, 10.5, 0.9, 1.9, "books", base=120, name="notice_board")
+    b.on_wall(0, c, -1, 9.0, 11.0, 0.9, 1.9, "books", base=120, name="notice_board")
+    # a textured feature wall (wood panelling) along the north corridor
+    b.on_wall(1, W, -1, 2.5, 6.0, 0.0, H - 0.1, "noise", base=125, amp=35, name="panelling")
+    for x, y in ((29.4, 0.5), (29.6, 18.1), (0.8, 18.3), (0.6, 0.8)):
+        b.add_rect((x - 0.5, y - 0.3, 0.004), (x + 0.5, y - 0.3, 0.004), (x - 0.5, y + 0.3, 0.004),
+                   (x, y, 1), kind="noise", name="mat")
+    b.add_box((19.0, 0.02, 0.0), (20.6, 0.4, 0.45), kind="noise", base=110, amp=35, name="bench")
+    # lab: book shelf and desks along the north wall, whiteboard west, poster east
+    x0, y0, x1, y1 = lab
+    b.add_box((9.0, y1 - 0.4, 0.0), (11.0, y1 - 0.02, 2.0), kind="low", base=140,
+              name="bookshelf", faces={"-y": ("books", 110)})
+    b.add_box((12.0, y1 - 0.9, 0.0), (15.0, y1 - 0.1, 0.74), kind="noise", base=120, amp=30,
+              name="desk")
+    b.add_box((12.6, y1 - 0.4, 0.74), (13.2, y1 - 0.32, 1.1), kind="poster", base=60, amp=30,
+              name="monitor")
+    b.on_wall(0, x0, +1, 4.0, 6.5, 0.9, 2.0, "low", base=228, amp=1.0, name="whiteboard")
+    b.on_wall(0, x1, -1, 4.5, 5.5, 1.0, 2.1, "poster", name="poster_lab")
+    b.add_rect((10.5, 4.6, 0.004), (13.5, 4.6, 0.004), (10.5, 7.0, 0.004), (12, 6, 1),
+               kind="noise", name="carpet")
+    # meeting room: table, shelf on the south wall, poster west, whiteboard east
+    x0, y0, x1, y1 = meet
+    b.add_box((19.0, y0 + 0.4, 0.0), (23.0, y0 + 1.4, 0.75), kind="noise", base=115, amp=35,
+              name="table")
+    b.add_box((17.2, y0 + 0.02, 0.0), (18.6, y0 + 0.4, 1.9), kind="low", base=140,
+              name="bookshelf", faces={"+y": ("books", 110)})
+    b.on_wall(0, x0, +1, 13.0, 14.6, 1.0, 2.0, "poster", name="poster_meeting")
+    b.on_wall(1, y0, +1, 23.1, 24.1, 1.0, 1.9, "poster", name="poster_meeting")
+    b.on_wall(0, x1, -1, 12.5, 15.0, 0.9, 2.0, "low", base=228, amp=1.0, name="whiteboard")
+    if specular:
+        # a glossy band along the south corridor's outer wall, lit by a line light along it
+        b.on_wall(1, 0.0, +1, 16.5, 26.5, 1.05, 1.7, "spec", name="specular_band",
+                  spec_light=(np.array([21.5, 2.0, 1.45]), np.array([1.0, 0, 0])))
+    lights = [(np.array([x, 1.2, H - 0.1]), 0.5, 2.5) for x in np.arange(2.0, L, 4.0)]
+    lights += [(np.array([x, W - 1.2, H - 0.1]), 0.5, 2.5) for x in np.arange(2.0, L, 4.0)]
+    lights += [(np.array([x, y, H - 0.1]), 0.5, 2.5) for x in (1.2, L - 1.2)
+               for y in (6.0, 10.0, 14.0)]
+    lights += [(np.array([x, y, H - 0.1]), 0.45, 3.0) for x, y in ((10.0, 5.6), (14.0, 5.6),
+                                                                     (19.0, 14.4), (23.0, 14.4))]
+    # the route (counter-clockwise round the ring, through the lab and the meeting room) as
+    # waypoints with the fillet radius of each corner; trajectory.py smooths and times it
+    route = [(4.0, 1.2), (9.5, 1.2), (9.5, 6.2), (14.5, 6.2), (14.5, 1.2), (L - 1.2, 1.2),
+             (L - 1.2, W - 1.2), (23.5, W - 1.2), (23.5, 13.8), (18.5, 13.8), (18.5, W - 1.2),
+             (1.2, W - 1.2), (1.2, 1.2)]
+    fillet = [0.0, 1.5, 1.5, 1.5, 1.5, 2.0, 2.0, 1.5, 1.5, 1.5, 1.5, 2.0, 2.0]
+    return lights, (np.zeros(3), np.array([L, W, H])), {
+        "route": route, "fillet": fillet, "height": 1.3, "speed": 0.9,
+        "rooms": {"lab": lab, "meeting": meet}, "rotation_center": (12.0, 5.6)}
+
+
 _LAYOUTS = {"office": (_office, "loop+pure_rotation"), "corridor": (_corridor, "corner"),
-            "garage": (_garage, "loop+pure_rotation")}
+            "garage": (_garage, "loop+pure_rotation"), "floor": (_floor, "route")}
 
 
 def make_scene(name: str = "office", contrast: float = 4.0, specular: bool = True,
                seed: int = 0) -> Scene:
-    """Build a named scene ('office', 'corridor', 'garage'), deterministic for ``seed``.
+    """Build a named scene ('office', 'corridor', 'garage', 'floor'), deterministic for ``seed``.
 
     ``contrast`` is the texture amplitude (grey levels, ~std) of the large low-texture surfaces:
     ~2-4 is a painted wall (almost nothing for a stereo matcher), 15+ makes them easy.
