@@ -40,7 +40,7 @@ def _look_at(pos, yaw, pitch=0.0):
 
 
 # ------------------------------------------------------------------------------------ scenes
-@pytest.mark.parametrize("name", ["office", "corridor", "garage"])
+@pytest.mark.parametrize("name", ["office", "corridor", "garage", "floor"])
 def test_scenes_have_every_label_and_exact_depth(name):
     sc = make_scene(name, seed=1)
     labels = {r.label for r in sc.rects}
@@ -88,7 +88,7 @@ def test_contrast_parameter_changes_low_texture(office):
 
 
 # ------------------------------------------------------------------------------- trajectories
-@pytest.mark.parametrize("name", ["office", "corridor", "garage"])
+@pytest.mark.parametrize("name", ["office", "corridor", "garage", "floor"])
 def test_default_trajectories_stay_inside_and_are_smooth(name):
     sc = make_scene(name)
     stamps, Ts = make_trajectory(sc, duration=30.0, rate=20.0, seed=2)
