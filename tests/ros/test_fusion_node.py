@@ -3,11 +3,13 @@ autosave on SIGINT, reload at start, bad input skipped, keyframe corrections."""
 from __future__ import annotations
 
 import os
+import shutil
 
 import numpy as np
 import pytest
 
 from conftest import wait_for
+from mdr_slam_msgs.srv import SaveMap
 from mdr_slam import conversions as cv
 from mdr_slam.geometry import make_T
 from scipy.spatial.transform import Rotation
@@ -131,6 +133,12 @@ def test_fusion_node_end_to_end(rospy_client, start_process, tmp_path):
     assert wait_for(moved, 10), node.output()
 
     mesh = rospy.ServiceProxy("/%s/export_mesh" % name, ExportMesh)
+    # a caller's path resolves inside map_dir (tmp_path); escaping ones are refused, unwritten
+    for bad in ("../mesh_out.ply", "/tmp/mdr_test_mesh_%d.ply" % os.getpid(), "a/../../x.ply"):
+        r = mesh(bad, 0.05)
+        assert not r.success and "outside the map directory" in r.message, (bad, r)
+    assert not (tmp_path.parent / "mesh_out.ply").exists()
+    assert not os.path.exists("/tmp/mdr_test_mesh_%d.ply" % os.getpid())
     r = mesh(str(tmp_path / "mesh.ply"), 0.05)
     assert r.success and r.n_triangles > 100 and os.path.exists(r.path), r.message
 
@@ -191,3 +199,57 @@ def test_fusion_node_pose_topic_sync(rospy_client, start_process, tmp_path):
     a = cv.pointcloud2_to_arrays(maps[-1])
     np.testing.assert_allclose(np.median(a["z"]), 2.0, atol=0.005)
     assert node.proc.poll() is None
+
+
+def test_reset_keeps_the_map_and_last_holds_one_session(rospy_client, start_process, tmp_path):
+    """A stray ~reset, then a normal shutdown: the map of before the reset is kept (last.1, with
+    the sparse map of its session), ``last`` holds the new session's map alone, and the kept map
+    loads again after a restart. A folder whose parts are of two sessions is refused."""
+    rospy = rospy_client
+    import tf2_ros
+    from sensor_msgs.msg import PointCloud2
+    from mdr_slam_msgs.srv import LoadMap
+    from std_srvs.srv import Trigger
+    from mdr_slam.io.map_dir import check_folder_sessions, folder_sessions
+    maps = tmp_path / "maps"
+    last = maps / "last"
+    os.makedirs(str(last))
+    # the pose node's autosave of the same session (its sparse map: only the session id matters)
+    np.savez(str(last / "pose_map.npz"), session_id=np.array("S"))
+    name = "fusion_rs"
+    args = ["_map_path:=last", "_map_dir:=%s" % maps, "_session_id:=S", "_pose_node:="]
+    node = _node(start_process, tmp_path, name, args)
+    pub = rospy.Publisher("/%s/cloud" % name, PointCloud2, queue_size=10)
+    T = make_T(np.eye(3), [0.0, 0.0, 0.0])
+    static = tf2_ros.StaticTransformBroadcaster()
+    static.sendTransform(cv.matrix_to_transform_stamped(T, rospy.Time(0), "map", "cam_rs"))
+    assert wait_for(lambda: pub.get_num_connections() > 0, 30), node.output()
+    rospy.wait_for_service("/%s/reset" % name, 30)
+    base = rospy.Time.now()
+    big, small = _wall(8000, 2.0, 3), _wall(500, 3.0, 4)
+    pub.publish(cv.arrays_to_pointcloud2({}, base, "cam_rs", xyz=big))
+    save_map = rospy.ServiceProxy("/%s/save_map" % name, SaveMap)
+    n_big = wait_for(lambda: save_map("probe", "").n_points, 15)
+    assert n_big > 1000, node.output()
+    r = rospy.ServiceProxy("/%s/reset" % name, Trigger)()
+    assert r.success and "kept in %s" % last in r.message, r
+    assert folder_sessions(str(last)) == {"dense": "S", "pose": "S"}
+    pub.publish(cv.arrays_to_pointcloud2({}, base + rospy.Duration(0.5), "cam_rs", xyz=small))
+    assert wait_for(lambda: 0 < save_map("probe2", "").n_points < n_big, 15), node.output()
+    node.stop()   # SIGINT: the autosave of the new session rotates last -> last.1
+    assert folder_sessions(str(last)) == {"dense": "S~1"}, node.output()
+    assert folder_sessions(str(maps / "last.1")) == {"dense": "S", "pose": "S"}
+    assert check_folder_sessions(str(last))[0] and check_folder_sessions(str(maps / "last.1"))[0]
+    # restart: the map of before the reset loads again
+    node2 = _node(start_process, tmp_path, name + "2", args)
+    rospy.wait_for_service("/%s2/load_map" % name, 30)
+    load = rospy.ServiceProxy("/%s2/load_map" % name, LoadMap)
+    r = load("last.1", False)
+    assert r.success and r.n_points == n_big, r
+    # a folder whose dense and sparse maps are of two sessions is refused with the reason
+    mixed = maps / "mixed"
+    shutil.copytree(str(maps / "last.1"), str(mixed))
+    np.savez(str(mixed / "pose_map.npz"), session_id=np.array("other"))
+    r = load("mixed", False)
+    assert not r.success and "different sessions" in r.message and r.n_points == n_big, r
+    assert node2.proc.poll() is None, node2.output()
