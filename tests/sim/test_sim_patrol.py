@@ -226,7 +226,7 @@ def test_floor_short_duration_walks_the_route_start(scenes):
 def test_mdr_sim_floor_and_laps_cli(tmp_path):
     out = tmp_path / "floor"
     r = subprocess.run(["mdr", "sim", "--scene", "floor", "--scale", "0.25", "--duration", "2",
-                        "--map-cell", "0.05", "--workers", "1", "--quiet", "--out", str(out)],
+                        "--workers", "1", "--quiet", "--out", str(out)],
                        capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     from mdr_slam.bagio import read_stereo_frames
@@ -234,10 +234,14 @@ def test_mdr_sim_floor_and_laps_cli(tmp_path):
     assert len(frames) == 40 and frames[0].left.shape == (120, 188)
     y = yaml.safe_load((out / "scene.yaml").read_text())
     assert y["scene"] == "floor" and y["trajectory"] == "route" and y["n_frames"] == 40
+    assert y["options"]["map_cell"] == 0.02 and y["n_map_points"] > 10000
     assert y["laps"][0]["frames"] == [0, 40] and y["scene_info"]["n_rects"] == len(
         make_scene("floor").rects)
     r = subprocess.run(["mdr", "sim", "--scene", "corridor", "--laps", "2", "--duration", "1",
                         "--out", str(tmp_path / "c")], capture_output=True, text=True)
     assert r.returncode == 2 and "not return to its start" in r.stderr
+    r = subprocess.run(["mdr", "sim", "--laps", "0", "--out", str(tmp_path / "z")],
+                       capture_output=True, text=True)
+    assert r.returncode == 2 and "positive" in r.stderr
     r = subprocess.run(["mdr", "sim", "--help"], capture_output=True, text=True)
     assert "--laps" in r.stdout and "floor" in r.stdout and "ONE lap" in r.stdout

@@ -60,9 +60,9 @@ def add_parser(subparsers, name: str = "sim", help_text: str = ""):
                         "given without a value)")
     p.add_argument("--max-range", type=float, default=8.0,
                    help="metres; gt_map keeps surfaces seen within this depth (default 8)")
-    p.add_argument("--map-cell", type=float, default=0.01, metavar="M",
-                   help="gt_map sample spacing, metres (default 0.01; the garage hall is ~5M "
-                        "points at 1 cm)")
+    p.add_argument("--map-cell", type=float, default=None, metavar="M",
+                   help="gt_map sample spacing, metres (default 0.01, floor 0.02; the garage "
+                        "hall is ~5M points at 1 cm)")
     p.add_argument("--scale", type=float, default=1.0,
                    help="shrink the 752x480 camera (0.25: 188x120, for quick tests)")
     p.add_argument("--workers", type=int, default=None,
@@ -103,8 +103,8 @@ def add_parser(subparsers, name: str = "sim", help_text: str = ""):
 def run(args) -> int:
     # the simulator when the command runs: `mdr --help` imports this module
     from ..sim import generate, generate_driver
-    if (args.duration is not None and args.duration <= 0) or args.rate <= 0 or \
-            args.map_cell <= 0 or args.scale <= 0 or args.laps < 1:
+    if any(v is not None and v <= 0 for v in (args.duration, args.rate, args.map_cell,
+                                               args.scale, args.laps)):
         print("mdr sim: --duration, --rate, --map-cell, --scale and --laps must be positive",
               file=sys.stderr)
         return 2

@@ -157,7 +157,7 @@ def generate(out_dir: str, scene="office", duration: Optional[float] = None, see
              specular: bool = True, noise: float = 2.0, save_depth: int = 0,
              max_range: float = 8.0, camera=None, scale: float = 1.0, trajectory=None,
              exposure: bool = False, blur: int = 0, blur_time: float = 0.01,
-             workers: Optional[int] = None, map_cell: float = 0.01,
+             workers: Optional[int] = None, map_cell: Optional[float] = None,
              progress: Optional[Callable[[int, int], None]] = None,
              frame_writer: Optional[Callable] = None, laps: int = 1) -> dict:
     """Render a sequence to ``out_dir``; returns a summary dict (paths, counts, timing).
@@ -166,6 +166,8 @@ def generate(out_dir: str, scene="office", duration: Optional[float] = None, see
     ``save_depth`` = N writes gt_depth for every N-th frame (0: none); ``blur`` = K averages K
     sub-poses over ``blur_time`` s centred on each stamp; ``exposure`` varies the gain;
     ``camera`` overrides the EuRoC-like default (``scale`` shrinks it, ``distort`` = raw images).
+    ``map_cell`` is the gt_map spacing (default: the scene's, 1 cm; the floor's 2 cm, since
+    its route sees ~1300 m2 of surface).
     ``duration`` is one lap's (default: 30 s, the floor's route: its whole length at its speed);
     ``laps`` = N patrols a loop trajectory N times (N x duration seconds): the summary's
     ``laps`` gives each lap's stamps ``t0``, ``t1`` and ``frames`` [first, end) (frame
@@ -198,6 +200,8 @@ def generate(out_dir: str, scene="office", duration: Optional[float] = None, see
     depth_dir = os.path.join(out_dir, "gt_depth")
     if depth_every > 0:
         os.makedirs(depth_dir, exist_ok=True)
+    if map_cell is None:
+        map_cell = float(sc.params.get("map_cell", 0.01))
     cells = _MapCells(sc, map_cell)
     sim = Simulator(sc, cam, seed=seed, noise=noise)
     if raw:

@@ -636,7 +636,8 @@ def _floor(b: _Builder, specular: bool):
     fillet = [0.0, 1.5, 1.5, 1.5, 1.5, 2.0, 2.0, 1.5, 1.5, 1.5, 1.5, 2.0, 2.0]
     return lights, (np.zeros(3), np.array([L, W, H])), {
         "route": route, "fillet": fillet, "height": 1.3, "speed": 0.9,
-        "rooms": {"lab": lab, "meeting": meet}, "rotation_center": (12.0, 5.6)}
+        "rooms": {"lab": lab, "meeting": meet}, "rotation_center": (12.0, 5.6),
+        "map_cell": 0.02}
 
 
 _LAYOUTS = {"office": (_office, "loop+pure_rotation"), "corridor": (_corridor, "corner"),
