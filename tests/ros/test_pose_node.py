@@ -322,3 +322,34 @@ def test_orb_node_with_the_orbslam3_backend_or_without_it(rospy_client, start_pr
     assert all(round(k.stamp.to_sec(), 6) in sent for k in new)
     node.stop()
     assert os.path.exists(traj_path) and len(np.loadtxt(traj_path)) == ok
+
+
+def test_reset_keeps_the_sparse_map(rospy_client, start_process, tmp_path):
+    """A stray ~reset: the map mapped before it is autosaved first (session S), the new map is
+    the next session (S~1) and its shutdown autosave moves the old one to last.1, whole."""
+    rospy = rospy_client
+    from mdr_slam.io.map_dir import folder_sessions
+    from mdr_slam_msgs.msg import TrackingState
+    from std_srvs.srv import Trigger
+    cam, poses, frames = _orbit(10, np.pi / 6)
+    maps = tmp_path / "maps"
+    node = _orb_node(start_process, "orb_reset", "/r", "_map_dir:=%s" % maps,
+                     "_session_id:=S", "_autosave_period:=0")
+    states = []
+    subs = [rospy.Subscriber("/mdr/tracking_state", TrackingState, states.append)]
+    rig = _stereo_rig(rospy, "/r", cam, subs, node, frame="cam_reset")
+    base = rospy.Time.now()
+    for i, (l, r) in enumerate(frames):
+        rig(l, r, base + rospy.Duration(0.1 * (i + 1)))
+        assert wait_for(lambda: len(states) >= i + 1, 20), node.output()
+    rospy.wait_for_service("/orb_reset/reset", 10)
+    res = rospy.ServiceProxy("/orb_reset/reset", Trigger)()
+    assert res.success and "kept in %s" % (maps / "last") in res.message, res
+    assert folder_sessions(str(maps / "last")) == {"pose": "S"}
+    n = len(states)
+    for i, (l, r) in enumerate(frames):   # a new map from the same frames, later stamps
+        rig(l, r, base + rospy.Duration(5.0 + 0.1 * (i + 1)))
+        assert wait_for(lambda: len(states) >= n + i + 1, 20), node.output()
+    node.stop()
+    assert folder_sessions(str(maps / "last")) == {"pose": "S~1"}, node.output()
+    assert folder_sessions(str(maps / "last.1")) == {"pose": "S"}
