@@ -12,7 +12,7 @@ ground_truth_camera. With --driver it holds only what that camera driver and a w
 groundtruth.tum, gt_map.ply and scene.yaml.
 
 --duration is the duration of ONE lap (default 30 s; the floor's ~105 m route: its whole length
-at ~0.9 m/s, about 128 s). --laps N drives a loop trajectory (office, garage, floor) N times end
+at 0.9 m/s, slower in turns, about 128 s). --laps N drives a loop trajectory (office, garage, floor) N times end
 to end, each later lap on a slightly different path, so the sequence lasts N x duration;
 scene.yaml lists every lap's stamps and frames. A corridor drive is not a loop: --laps refuses it.
 """
@@ -30,8 +30,8 @@ def add_parser(subparsers, name: str = "sim", help_text: str = ""):
                    help="scene (default office; floor: a 32 x 20 m building floor, corridor "
                         "ring and two rooms, walked along a ~105 m route)")
     p.add_argument("--duration", type=float, default=None,
-                   help="seconds of ONE lap (default 30; floor: the whole route at ~0.9 m/s, "
-                        "~128 s; a shorter one walks the route's start only)")
+                   help="seconds of ONE lap (default 30; floor: the whole route at 0.9 m/s, "
+                        "slower in turns, ~128 s; a shorter one walks the route's start only)")
     p.add_argument("--laps", type=int, default=1, metavar="N",
                    help="patrol: drive the scene's loop N times end to end, each lap on a "
                         "slightly different path, fresh noise (N x duration seconds; office, "
