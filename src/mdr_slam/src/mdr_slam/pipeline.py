@@ -199,7 +199,8 @@ class Pipeline:
         left, right = self.timer.time("rectify", self.camera.rectify, frame.left, frame.right)
         T, state, kf = self._pose(frame, left, right)
         self.states.append((frame.stamp, state))
-        rec = {"index": frame.index, "stamp": frame.stamp, "state": state, "points": 0}
+        rec = {"index": frame.index, "stamp": frame.stamp, "state": state, "points": 0,
+               "tracking_ms": self._tracking_ms}
         if T is None:
             self.counts["frames_lost"] += 1
             self.timer.add("frame", 1e3 * (time.perf_counter() - t_frame))
@@ -233,12 +234,14 @@ class Pipeline:
 
     def _pose(self, frame: InputFrame, left, right):
         """(T_map_cam or None, state, keyframe flag or None)."""
+        self._tracking_ms = None              # the tracker's own time, as the pose node reports
         if self.tracker is None:
             T = frame.T_map_cam_gt
             if T is None or not is_valid_T(T):
                 return None, "NO_GROUND_TRUTH", None
             return T, "OK", None
         res = self.timer.time("pose", self.tracker.track, frame.stamp, left, right)
+        self._tracking_ms = float(res.time_ms)
         if res.state == "RELOCALIZED" and self.map_loaded and self.relocalized_at is None:
             self.relocalized_at = float(frame.stamp)
         if res.corrections:

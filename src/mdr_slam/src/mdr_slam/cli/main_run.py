@@ -18,7 +18,9 @@ Writes the map folder ``DIR/map/`` (the fused dense map and the tracker's sparse
 ``--map`` and the nodes' ``load_map``), ``DIR/map.ply`` (a link to the dense map),
 ``DIR/trajectory.tum`` (left camera optical frame in ``map``, one line per posed frame) and
 ``DIR/summary.json`` (frame counts, keyframes created, the first relocalization in a loaded map,
-per-stage median and p90 milliseconds).
+per-stage median and p90 milliseconds). With ``--window S``: also ``DIR/timeline.json`` and
+``DIR/timeline.png``, the run per S seconds of bag time (memory, tracking time and share,
+sparse and dense map size, loop closures: a long-run report).
 
     mdr run BAG --out A                                    # map once
     mdr run BAG --out B --map A/map --localization --start 6   # then localize in it The four runs of the paper's ablation (Table 2) differ only in --temporal and
@@ -46,6 +48,17 @@ def _onoff(text: str) -> bool:
     if t in ("off", "false", "0", "no"):
         return False
     raise argparse.ArgumentTypeError("expected on or off, got %r" % text)
+
+
+def _seconds(text: str) -> float:
+    """A window length: seconds > 0."""
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not v > 0 or v == float("inf"):
+        raise argparse.ArgumentTypeError("expected seconds > 0, got %r" % text)
+    return v
 
 
 def add_parser(sub, name, help_text):
@@ -81,6 +94,11 @@ def add_parser(sub, name, help_text):
                         "frames: 41.5 s of CPU with one thread, 49.6 s with two, same result)")
     p.add_argument("--set", action="append", default=[], metavar="NODE.KEY=VALUE",
                    help="override a parameter, e.g. depth.tau=0.02 (repeatable)")
+    p.add_argument("--window", type=_seconds, default=None, metavar="S",
+                   help="also write DIR/timeline.json and timeline.png: per S seconds of bag "
+                        "time the process's RSS, tracking ms median / p90, frames tracked, "
+                        "keyframes alive, sparse and dense map points, loop closures (a long-run "
+                        "report, e.g. --window 60)")
     p.add_argument("--quiet", action="store_true", help="no progress line")
     p.set_defaults(func=run)
     return p
@@ -216,10 +234,18 @@ def run(args) -> int:
     if args.map and not pipe.map_loaded:
         print("mdr run: could not load the map %s: %s (starting empty)"
               % (args.map, pipe.map_load_error), file=sys.stderr)
+    timeline = None
+    if getattr(args, "window", None):
+        from ..eval.timeline import RunTimeline, pipeline_gauges
+        timeline = RunTimeline(args.window, lambda: pipeline_gauges(pipe))
     t0 = time.perf_counter()
     n = 0
     for f in itertools.chain([first], frames):
-        pipe.process(f)
+        if timeline is not None:
+            timeline.before_frame(f.stamp)
+        rec = pipe.process(f)
+        if timeline is not None:
+            timeline.frame(f.stamp, rec["state"], rec.get("tracking_ms"))
         n += 1
         if not args.quiet and (n % 20 == 0):
             el = time.perf_counter() - t0
@@ -227,9 +253,17 @@ def run(args) -> int:
                 n, n / el, len(pipe.map)), end="", file=sys.stderr, flush=True)
     if not args.quiet:
         print("", file=sys.stderr)
+    rows = timeline.rows() if timeline is not None else None   # before finish ends the tracker
     summary = pipe.finish(args.out, extra={
         "input": args.bag or args.euroc or args.kitti, "skipped_inputs": skipped["n"],
         "skipped_examples": skipped["examples"], "wall_s": round(time.perf_counter() - t0, 3)})
+    if timeline is not None:
+        from ..eval.timeline import write_timeline
+        write_timeline(args.out, rows, args.window, extra={
+            "input": args.bag or args.euroc or args.kitti, "pose_source": args.pose_source,
+            "time": "bag seconds since the first frame"},
+            title="mdr run %s" % os.path.basename(os.path.normpath(
+                args.bag or args.euroc or args.kitti)))
     if skipped["n"] and not args.quiet:
         print("mdr run: %d input messages skipped, e.g. %s" % (
             skipped["n"], "; ".join(skipped["examples"][:3])), file=sys.stderr)
