@@ -195,6 +195,8 @@ class PoseRelay:
         self.tracking = {"state": "GROUNDTRUTH" if self.p.source == "groundtruth"
                          else "NOT_INITIALIZED", "time_ms": float("nan"), "lost": 0,
                          "keyframes": 0, "loop_closures": 0, "visual_odometry": 0, "last_ok": None}
+        self.sparse_map_points = None      # OrbNode: () -> points of its sparse map, or None
+        self._sparse_last = None
         self.diag = diagnostic_updater.Updater()
         self.diag.setHardwareID("mdr_slam")
         self.diag.add("pose", self.diagnostics)
@@ -232,8 +234,12 @@ class PoseRelay:
         stat.add("tracking_time_ms", "%.1f" % t["time_ms"])
         stat.add("frames_dropped_busy", str(self.warn.counts.get("busy", 0)))   # newest kept
         stat.add("frames_lost", str(t["lost"]))
-        stat.add("keyframes", str(t["keyframes"]))
+        stat.add("keyframes", str(t["keyframes"]))   # alive: culled ones are not counted
         stat.add("loop_closures", str(t["loop_closures"]))
+        n = self.sparse_map_points() if self.sparse_map_points is not None else None
+        self._sparse_last = n if n is not None else self._sparse_last
+        if self._sparse_last is not None:
+            stat.add("sparse_map_points", str(self._sparse_last))
         # tracked frame to frame where the map did not cover the view (fast turns, mapping behind)
         stat.add("frames_visual_odometry", str(t["visual_odometry"]))
         stat.add("last_tracked_s_ago", "%.2f" % ((rospy.Time.now() - t["last_ok"]).to_sec()
@@ -459,6 +465,7 @@ class OrbNode(PoseMapServices):
         self.relay = relay
         self.warn = relay.warn
         self.system = None
+        relay.sparse_map_points = self._sparse_map_points
         self.camera = None
         self.info_key = None
         self.T_map_odom = np.eye(4)
@@ -503,6 +510,18 @@ class OrbNode(PoseMapServices):
             self.camera = self._rectified(self.camera)
         rospy.loginfo("pose_node: ORB tracking on %s + %s", self.input.topics["left"],
                       self.input.topics["right"])
+
+    def _sparse_map_points(self):
+        """Points of the sparse map for the diagnostics (None without one: orbslam3's), read
+        under the map's lock but not waiting long for it (bundle adjustment may hold it)."""
+        mp = getattr(self.system, "map", None)
+        lock = getattr(mp, "lock", None)
+        if lock is None or not hasattr(mp, "n_points") or not lock.acquire(timeout=0.05):
+            return None
+        try:
+            return int(mp.n_points)
+        finally:
+            lock.release()
 
     # ------------------------------------------------------------------ input
     def _rectified(self, cam):
