@@ -111,7 +111,8 @@ def test_timeline_table_and_plot(tmp_path):
                                                 "fusion_node": 200.0, "total": 410.5},
              "tracking_ms": {"median": 21.5, "p90": 40.0, "n": 3000}, "frames": 3000,
              "frames_tracked": 2970, "tracked_share": 0.99, "keyframes": 150,
-             "sparse_map_points": 12000, "loop_closures": 1, "map_hz": 4.5},
+             "sparse_map_points": 12000, "loop_closures": 1, "map_hz": 4.5,
+             "dense_map_points": 2500000},
             {"t0": 300.0, "t1": 600.0, "rss_mb": {"pose_node": 130.0, "depth_node": None,
                                                   "fusion_node": 210.0, "total": None},
              "tracking_ms": {"median": None, "p90": None, "n": 0}, "frames": 0,
@@ -121,8 +122,13 @@ def test_timeline_table_and_plot(tmp_path):
     assert lines[0].startswith("| t (s) | RSS MB pose_node / depth_node / fusion_node / total |")
     assert len(lines) == 4 and all(ln.count("|") == lines[0].count("|") for ln in lines)
     assert lines[2] == ("| 0-300 | 120 / 90.5 / 200 / 410.5 | 21.5 / 40 | 2970 / 3000 (99 %) | "
-                        "150 | 12000 | 1 | 4.5 |")
-    assert lines[3] == "| 300-600 | 130 / - / 210 / - | - / - | 0 / 0 (-) | - | - | 0 | 0 |"
+                        "150 | 12000 | 1 | 4.5 | 2500000 |")
+    assert lines[3] == "| 300-600 | 130 / - / 210 / - | - / - | 0 / 0 (-) | - | - | 0 | 0 | - |"
+    # leading columns of the caller's, short node names in the header
+    lines = timeline_md(rows, nodes, extra=(("poses", lambda w: w.get("poses_per_min")),),
+                        labels=("pose", "depth", "fusion"))
+    assert lines[0].startswith("| t (s) | poses | RSS MB pose / depth / fusion / total |")
+    assert lines[2].startswith("| 0-300 | - | 120 / 90.5 / 200 / 410.5 |")
     # one process (mdr run): a single RSS column
     single = timeline_md([dict(rows[0], rss_mb=305.2)])
     assert "| RSS MB |" in single[0] and "| 0-300 | 305.2 |" in single[2]
@@ -179,3 +185,94 @@ def test_mdr_run_window_writes_the_timeline(sim3, tmp_path):
     r = subprocess.run(MDR + ["run", os.path.join(sim3, "sequence.bag"), "--out", out + "x",
                               "--window", "0"], capture_output=True, text=True)
     assert r.returncode == 2 and "expected seconds > 0" in r.stderr, r.stderr
+
+
+def _fake_listener(elapsed=1800.0, t_start=1000.0):
+    """A live benchmark's _Listener as 30 minutes of topics and diagnostics would leave it
+    (no ROS): 10 Hz tracking states with every 10th LOST; the pose node down from 600 to 900 s
+    (no states) and restarted then (keyframes and loop closures count from 0 again)."""
+    import threading
+    from mdr_slam.cli.bench_live import _Listener
+    lst = _Listener.__new__(_Listener)   # without its subscribers
+    lst.lock = threading.Lock()
+    lst.t_start = t_start
+    lst.n_pose = lst.n_depth = lst.n_depth_empty = 0
+    lst.states, lst.diag, lst.diag_time = {}, {}, {}
+    lst.tracking_ms, lst.latency_s, lst.depth_latency_s, lst.poses = [], [], [], []
+    lst.t_pose, lst.t_depth, lst.integrated, lst.map_points = [], [], [], []
+    lst.tracked, lst.keyframes, lst.loop_closures, lst.sparse_points = [], [], [], []
+    for i in range(int(elapsed * 10)):
+        t = 0.1 * i
+        if i % 10 == 0:   # the fusion node's diagnostics once a second, all along
+            lst.integrated.append((t_start + t, i // 5))
+            lst.map_points.append((t_start + t, 100 * i))
+        if 600 <= t < 900:
+            continue
+        restarted = t >= 900
+        k = i - 9000 if restarted else i
+        state = 2 if i % 10 == 0 else 1
+        ms = 20.0 + (t / 60.0) + (i % 10)          # slower as the map grows
+        w = t_start + t
+        lst.states[state] = lst.states.get(state, 0) + 1
+        lst.tracking_ms.append(ms)
+        lst.tracked.append((w, state, ms))
+        lst.keyframes.append((w, k // 50))
+        lst.loop_closures.append((w, k // 3000))
+        lst.t_pose.append(w)
+        if i % 10 == 0:   # the pose node's
+            lst.sparse_points.append((w, 20 * k))
+    lst.diag = {"pose_node: pose": {"keyframes": str(lst.keyframes[-1][1])},
+                "fusion_node: fusion": {"map points": str(lst.map_points[-1][1])}}
+    samples = [{"t": float(t), "pose_node.rss_mb": 100.0 + t / 60, "pose_node.anon_mb": 80.0,
+                "depth_node.rss_mb": 90.0, "depth_node.anon_mb": 70.0,
+                "fusion_node.rss_mb": 200.0 + t / 10, "fusion_node.anon_mb": 150.0,
+                "pose_node.cpu": 50.0, "depth_node.cpu": 80.0, "fusion_node.cpu": 30.0}
+               for t in range(1, int(elapsed))]
+    return lst, samples
+
+
+def test_live_timeline_of_a_30_minute_run_in_5_minute_windows(sim3, tmp_path):
+    import argparse
+    from mdr_slam.cli.bench_live import NODES, _report_md, _summarize
+    lst, samples = _fake_listener()
+    args = argparse.Namespace(rate=1.0, loop=True, out=str(tmp_path), window=300.0,
+                              left_image=None, right_image=None, image_transport="raw")
+    r = _summarize(args, os.path.join(sim3, "sequence.bag"), lst, samples, 1800.0, "orb")
+    assert r["timeline_window_s"] == 300.0
+    tl = r["timeline"]
+    assert [(w["t0"], w["t1"]) for w in tl] == [(300.0 * k, 300.0 * (k + 1)) for k in range(6)]
+    w0, w1, w2, w3, w4, w5 = tl
+    assert w0["frames"] == 3000 and w0["frames_tracked"] == 2700 and w0["tracked_share"] == 0.9
+    assert w0["tracking_ms"]["n"] == 3000
+    assert w0["tracking_ms"]["median"] < w5["tracking_ms"]["median"] <= w5["tracking_ms"]["p90"]
+    assert w1["keyframes"] == 5999 // 50 and w1["sparse_map_points"] == 20 * 5990
+    assert w1["loop_closures"] == 1 and w1["loop_closures_total"] == 1   # the first at 300 s
+    # the pose node down for the whole window: no states, its last figures stand
+    assert w2["frames"] == 0 and w2["tracked_share"] is None
+    assert w2["tracking_ms"] == {"median": None, "p90": None, "n": 0}
+    assert w2["keyframes"] == w1["keyframes"] and w2["loop_closures"] == 0
+    # restarted at 900 s: counts from 0 again, later windows' closures still count
+    assert w3["keyframes"] == 2999 // 50 and w3["loop_closures_total"] == 0
+    assert w3["loop_closures"] == 0 and w3["frames"] == 3000
+    assert (w4["loop_closures"], w4["loop_closures_total"]) == (1, 1)
+    assert (w5["loop_closures"], w5["loop_closures_total"]) == (1, 2)
+    assert sum(w["loop_closures"] for w in tl) == 3
+    for w in tl:
+        assert w["rss_mb"]["total"] == pytest.approx(sum(w["rss_mb"][n] for n in NODES), abs=0.2)
+        assert w["map_hz"] == pytest.approx(2.0, abs=0.02)    # one integration per 0.5 s
+        assert w["integrations_per_min"] == pytest.approx(60 * w["map_hz"], abs=1.0)
+    assert tl[-1]["rss_mb"]["fusion_node"] > tl[0]["rss_mb"]["fusion_node"] + 100
+    md = _report_md(r)
+    assert "Over time (300 s windows" in md
+    table = [ln for ln in md.splitlines() if ln.startswith("| 0-300 |")]
+    assert len(table) == 1
+    head = [ln for ln in md.splitlines() if ln.startswith("| t (s) | poses | depth clouds |")][0]
+    assert "RSS MB pose / depth / fusion / total" in head and "sparse map points" in head
+    assert table[0].count("|") == head.count("|")
+    assert " 2700 / 3000 (90 %) " in table[0]
+    assert [ln for ln in md.splitlines() if ln.startswith("| 600-900 |")][0].count(
+        "| 0 / 0 (-) |") == 1
+    # the default window of a 30-minute run: a minute
+    del args.window
+    assert _summarize(args, os.path.join(sim3, "sequence.bag"), lst, samples, 1800.0,
+                      "orb")["timeline_window_s"] == 60.0

@@ -21,6 +21,7 @@ import yaml
 
 from ..bagio import image_topics, read_ground_truth
 from ..conversions import ConversionError, pose_stamped_to_matrix
+from ..eval.timeline import Series, Tracked, plot_timeline, timeline_md, window_bounds
 from ..eval.trajectory import ate
 from ..io import Trajectory
 from ..io.trajectory import write_tum
@@ -174,6 +175,12 @@ class _Listener:
         self.n_depth = 0
         self.states: Dict[int, int] = {}
         self.tracking_ms: List[float] = []   # wall time per tracked pair (pose node)
+        # per TrackingState, for the long-run windows: (wall time, state, tracking ms), and
+        # (wall time, keyframes alive), (wall time, loop closures so far)
+        self.tracked: List[tuple] = []
+        self.keyframes: List[tuple] = []
+        self.loop_closures: List[tuple] = []
+        self.sparse_points: List[tuple] = []   # (wall time, pose's "sparse_map_points")
         self.diag: Dict[str, Dict[str, str]] = {}
         self.diag_time: Dict[str, float] = {}   # wall time of each status's last report
         self.latency_s: List[float] = []
@@ -214,9 +221,13 @@ class _Listener:
                 self.depth_latency_s.append(lat)
 
     def _state(self, msg):
+        now = time.time()
         with self.lock:
             self.states[msg.state] = self.states.get(msg.state, 0) + 1
             self.tracking_ms.append(float(msg.tracking_time_ms))
+            self.tracked.append((now, int(msg.state), float(msg.tracking_time_ms)))
+            self.keyframes.append((now, int(msg.n_keyframes)))
+            self.loop_closures.append((now, int(msg.n_loop_closures)))
 
     def _diag(self, msg):
         with self.lock:
@@ -235,6 +246,8 @@ class _Listener:
                         self.integrated.append((time.time(), f))
                     elif k == "map points" and "fusion" in st.name:
                         self.map_points.append((time.time(), f))
+                    elif k == "sparse_map_points":
+                        self.sparse_points.append((time.time(), f))
 
     def diag_value(self, node: str, key: str, default=None):
         with self.lock:
@@ -365,6 +378,10 @@ def run_live(args) -> int:
     with open(os.path.join(args.out, "samples.json"), "w") as f:
         json.dump(samples, f)
     _plot(samples, os.path.join(args.out, "resources.png"), result.get("timeline"))
+    plot_timeline(result.get("timeline"), os.path.join(args.out, "timeline.png"),
+                  title="mdr bench %s (%g s windows)" % (os.path.basename(bag),
+                                                          result["timeline_window_s"]),
+                  nodes=NODES)
     md = _report_md(result)
     with open(os.path.join(args.out, "report.md"), "w") as f:
         f.write(md)
@@ -403,46 +420,50 @@ def _slope_per_min(t, y):
     return round(float(np.polyfit(t[late], y[late], 1)[0]) * 60.0, 3)
 
 
-def _increments(series):
-    """Per-report increments of a cumulative counter (t, value); a drop means the node restarted
-    and counts from zero again."""
-    v = np.asarray([c for _, c in series], dtype=float)
-    if len(v) == 0:
-        return v
-    d = np.diff(v, prepend=v[0])
-    return np.where(d < 0, v, d)
-
-
 def timeline_window(elapsed: float) -> float:
     """Per-minute windows for long runs; about six windows for short ones."""
     return 60.0 if elapsed >= 300 else float(max(5.0, round(elapsed / 6.0)))
 
 
 def _timeline(lst: "_Listener", samples, elapsed: float, window: float) -> List[dict]:
-    """Rates (per minute), map size and per-node resources in consecutive windows of the run."""
+    """Rates (per minute), map sizes, tracking and per-node resources in consecutive windows of
+    the run (mdr_slam.eval.timeline: the same windows and names as ``mdr run --window``)."""
     ts = lst.t_start
-    pose = np.sort(np.asarray(lst.t_pose, dtype=float) - ts)
-    depth = np.sort(np.asarray(lst.t_depth, dtype=float) - ts)
-    it_t = np.asarray([t for t, _ in lst.integrated], dtype=float) - ts
-    it_inc = _increments(lst.integrated)
-    mp_t = np.asarray([t for t, _ in lst.map_points], dtype=float) - ts
-    mp_v = np.asarray([v for _, v in lst.map_points], dtype=float)
+    with lst.lock:   # the subscribers' threads still run
+
+        def rel(series):
+            return [(t - ts,) + tuple(x) for t, *x in series]
+        pose = Series([t - ts for t in lst.t_pose])
+        depth = Series([t - ts for t in lst.t_depth])
+        integrated = Series(rel(lst.integrated))
+        map_points = Series(rel(lst.map_points))
+        tracked = Tracked(rel(lst.tracked))
+        keyframes = Series(rel(lst.keyframes))
+        loops = Series(rel(lst.loop_closures))
+        sparse = Series(rel(lst.sparse_points))
     st = np.asarray([s["t"] for s in samples], dtype=float)
+    bounds = window_bounds(elapsed, window, min_len=1.0)   # a handful of windows, not per sample
     rows = []
-    for a in np.arange(0.0, elapsed, window):      # a handful of windows, not per sample
-        b = min(a + window, elapsed)
-        if b - a < 1.0:
-            break
+    for i, (a, b) in enumerate(bounds):
+        last = i == len(bounds) - 1
         per_min = 60.0 / (b - a)
         row = OrderedDict(t0=round(float(a), 1), t1=round(float(b), 1))
-        row["poses_per_min"] = round(float(np.count_nonzero((pose >= a) & (pose < b))) * per_min, 1)
-        row["depth_clouds_per_min"] = round(
-            float(np.count_nonzero((depth >= a) & (depth < b))) * per_min, 1)
-        row["integrations_per_min"] = round(
-            float(it_inc[(it_t >= a) & (it_t < b)].sum()) * per_min, 1)
-        seen = mp_v[mp_t < b]
-        row["map_points"] = int(seen[-1]) if len(seen) else None
-        inw = [samples[i] for i in np.nonzero((st >= a) & (st < b))[0]]
+        row["poses_per_min"] = round(pose.count(a, b, last) * per_min, 1)
+        row["depth_clouds_per_min"] = round(depth.count(a, b, last) * per_min, 1)
+        n_int = integrated.increase(a, b, last)
+        row["integrations_per_min"] = round(n_int * per_min, 1)
+        row["map_hz"] = round(n_int / (b - a), 2)
+        # reports at the end itself belong to the next window (but the last's)
+        mp = map_points.at(b, last)
+        row["map_points"] = int(mp) if mp is not None else None
+        row["dense_map_points"] = row["map_points"]
+        row.update(tracked.figures(a, b, last))
+        kf, sp, lc = keyframes.at(b, last), sparse.at(b, last), loops.at(b, last)
+        row["keyframes"] = int(kf) if kf is not None else None
+        row["sparse_map_points"] = int(sp) if sp is not None else None
+        row["loop_closures"] = int(loops.increase(a, b, last))
+        row["loop_closures_total"] = int(lc) if lc is not None else None
+        inw = [samples[k] for k in np.nonzero((st >= a) & ((st <= b) if last else (st < b)))[0]]
         rss, cpu = OrderedDict(), OrderedDict()
         anon = OrderedDict()
         for n in NODES:
@@ -547,7 +568,7 @@ def _summarize(args, bag, lst: "_Listener", samples, elapsed, pose_source) -> di
     mp = [(tt - lst.t_start, v) for tt, v in lst.map_points if t0 <= tt - lst.t_start <= t1 + 1.0]
     r["map_points_slope_per_min"] = _slope_per_min([a for a, _ in mp], [v for _, v in mp])
     r["map_points_max"] = int(max(v for _, v in lst.map_points)) if lst.map_points else None
-    r["timeline_window_s"] = timeline_window(elapsed)
+    r["timeline_window_s"] = float(getattr(args, "window", None) or timeline_window(elapsed))
     r["timeline"] = _timeline(lst, all_samples, elapsed, r["timeline_window_s"])
     # seconds since each status last reported at the end: a stale one means that node's
     # diagnostics stopped (its counters above, e.g. map points, are then frozen)
@@ -609,14 +630,16 @@ def _report_md(r) -> str:
                   "report: %s); their counters (map points, integrations) are frozen from then."
                   % ", ".join("%s %s" % kv for kv in stale.items())]
     if r.get("timeline"):
-        lines += ["", "Over time (%g s windows; rates per minute):" % r["timeline_window_s"], "",
-                  "| t (s) | poses | depth clouds | integrations | map points | RSS MB pose / "
-                  "depth / fusion / total |", "|---|---|---|---|---|---|"]
-        for w in r["timeline"]:
-            lines.append("| %g-%g | %s | %s | %s | %s | %s / %s / %s / %s |" % (
-                w["t0"], w["t1"], w["poses_per_min"], w["depth_clouds_per_min"],
-                w["integrations_per_min"], w["map_points"],
-                *[w["rss_mb"][n] for n in list(NODES) + ["total"]]))
+        lines += ["", "Over time (%g s windows): poses and depth clouds per minute; RSS: the "
+                  "window's mean; keyframes (alive), sparse and dense map points: at its end; "
+                  "loop closures: closed in it; tracking ms: the pose node's per stereo pair; "
+                  "frames tracked: OK or RELOCALIZED of the states it published; map Hz: "
+                  "integrations per second. Plotted in timeline.png." % r["timeline_window_s"],
+                  ""]
+        lines += timeline_md(r["timeline"], NODES,
+                             extra=(("poses", lambda w: w.get("poses_per_min")),
+                                    ("depth clouds", lambda w: w.get("depth_clouds_per_min"))),
+                             labels=[n.replace("_node", "") for n in NODES])
     return "\n".join(lines) + "\n"
 
 

@@ -16,7 +16,11 @@ total, median and max), ``DIR/report.md`` and ``DIR/resources.png``. The bag inp
 (``--left-image``, ``--right-image``, ``--left-info``, ``--right-info``, ``--ground-truth-pose``,
 ``--image-transport``, ``--sync-tolerance``, ``--rectified``) go to the launch file as its
 arguments of the same names (``left_image:=...``); live poses default to ``orb`` (the launch
-file's default), ``groundtruth`` relays the bag's ground-truth topic.
+file's default), ``groundtruth`` relays the bag's ground-truth topic. Long runs (``--loop
+--live-duration 1800``): bench.json's ``timeline``, report.md's table and ``DIR/timeline.png``
+give per window (``--window S``) RSS per node and in total, tracking ms median and p90, the
+share of stereo pairs tracked, keyframes alive, sparse and dense map points, loop closures and
+the map rate.
 
 For each scene: render the sequence (``mdr sim``, skipped when ``DIR/sim_<scene>`` exists), run the
 offline pipeline (``mdr run``) five times -- ELAS-only baseline (temporal off, confidence off),
@@ -59,7 +63,7 @@ from ..eval import DEFAULT_MAX_RANGE, ate, grid_metrics, grid_params, map_alignm
 from ..io import cloud_xyz, read_cloud, read_tum
 from ..nav import map_min_confidence, map_views
 from . import mdr_command
-from .main_run import _overrides, add_bag_input_arguments, bag_input_argv, bag_topics
+from .main_run import _overrides, _seconds, add_bag_input_arguments, bag_input_argv, bag_topics
 
 SURFACE_LABELS_ORDER = ("low_texture", "textured", "specular")
 CONFIGS = OrderedDict([
@@ -96,6 +100,9 @@ def add_parser(sub, name, help_text):
     p.add_argument("--rate", type=float, default=1.0, help="live: rosbag play rate")
     p.add_argument("--live-duration", type=float, default=None,
                    help="live: seconds to run (default: the bag's length / rate + 15 s)")
+    p.add_argument("--window", type=_seconds, default=None, metavar="S",
+                   help="live: the report's time windows, s (default: 60 for runs of 5 minutes "
+                        "or more, else about a sixth of the run), e.g. --window 300")
     p.add_argument("--scenes", default="office,corridor")
     p.add_argument("--duration", type=float, default=30.0)
     p.add_argument("--seed", type=int, default=0)
@@ -180,6 +187,8 @@ def _live_compare_run(args, backend: str, run_dir: str, log: str):
         argv.append("--loop")
     if args.live_duration:
         argv += ["--live-duration", str(args.live_duration)]
+    if getattr(args, "window", None):
+        argv += ["--window", str(args.window)]
     for a in args.launch_arg or []:
         argv += ["--launch-arg", a]
     for it in list(args.set or []) + ["pose.backend=" + backend]:   # the last value wins

@@ -20,7 +20,7 @@ from __future__ import annotations
 import json
 import os
 from collections import OrderedDict
-from typing import Callable, Dict, Iterable, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -74,9 +74,10 @@ class Series:
     def values(self, a: float, b: float, last: bool = False) -> np.ndarray:
         return self.v[self.mask(a, b, last)]
 
-    def at(self, b: float) -> Optional[float]:
-        """The last value reported at or before ``b`` (a gauge: map size, RSS, keyframes)."""
-        seen = self.v[self.t <= b]
+    def at(self, b: float, inclusive: bool = True) -> Optional[float]:
+        """The last value reported at or before ``b`` (before it: not ``inclusive``), a gauge's
+        value at a window's end (map size, RSS, keyframes)."""
+        seen = self.v[(self.t <= b) if inclusive else (self.t < b)]
         return float(seen[-1]) if len(seen) else None
 
     def increase(self, a: float, b: float, last: bool = False) -> float:
@@ -225,14 +226,19 @@ def _fmt(x) -> str:
     return "-" if x is None else ("%g" % x if isinstance(x, float) else str(x))
 
 
-def timeline_md(rows: Sequence[dict], nodes: Sequence[str] = ()) -> List[str]:
-    """Markdown table lines of timeline rows: time, RSS (per node and total when ``nodes``),
-    tracking ms median / p90, frames tracked / frames (share), keyframes, sparse map points,
-    loop closures in the window, map rate. Columns a row lacks show as -."""
-    rss_head = "RSS MB " + " / ".join(list(nodes) + ["total"]) if nodes else "RSS MB"
-    lines = ["| t (s) | %s | tracking ms median / p90 | frames tracked / frames (share) | "
-             "keyframes | sparse map points | loop closures | map Hz |" % rss_head,
-             "|---|---|---|---|---|---|---|---|"]
+def timeline_md(rows: Sequence[dict], nodes: Sequence[str] = (),
+                extra: Sequence[Tuple[str, Callable[[dict], object]]] = (),
+                labels: Optional[Sequence[str]] = None) -> List[str]:
+    """Markdown table lines of timeline rows: time, ``extra`` columns ((header, row -> value)),
+    RSS (per node, named ``labels`` in the header, and total when ``nodes``), tracking ms
+    median / p90, frames tracked / frames (share), keyframes alive, sparse map points, loop
+    closures in the window, map rate, dense map points. What a row lacks shows as -."""
+    names = list(labels or nodes)
+    rss_head = "RSS MB " + " / ".join(names + ["total"]) if nodes else "RSS MB"
+    heads = ["t (s)"] + [h for h, _ in extra] + [
+        rss_head, "tracking ms median / p90", "frames tracked / frames (share)", "keyframes",
+        "sparse map points", "loop closures", "map Hz", "dense map points"]
+    lines = ["| " + " | ".join(heads) + " |", "|" + "---|" * len(heads)]
     for w in rows:
         rss = w.get("rss_mb")
         if isinstance(rss, dict):
@@ -241,12 +247,14 @@ def timeline_md(rows: Sequence[dict], nodes: Sequence[str] = ()) -> List[str]:
             rss_s = _fmt(rss)
         tm = w.get("tracking_ms") or {}
         share = w.get("tracked_share")
-        lines.append("| %g-%g | %s | %s / %s | %s / %s (%s) | %s | %s | %s | %s |" % (
-            w["t0"], w["t1"], rss_s, _fmt(tm.get("median")), _fmt(tm.get("p90")),
-            _fmt(w.get("frames_tracked")), _fmt(w.get("frames")),
-            "-" if share is None else "%.0f %%" % (100 * share), _fmt(w.get("keyframes")),
-            _fmt(w.get("sparse_map_points")), _fmt(w.get("loop_closures")),
-            _fmt(w.get("map_hz"))))
+        cells = ["%g-%g" % (w["t0"], w["t1"])] + [_fmt(fn(w)) for _, fn in extra] + [
+            rss_s, "%s / %s" % (_fmt(tm.get("median")), _fmt(tm.get("p90"))),
+            "%s / %s (%s)" % (_fmt(w.get("frames_tracked")), _fmt(w.get("frames")),
+                              "-" if share is None else "%.0f %%" % (100 * share)),
+            _fmt(w.get("keyframes")), _fmt(w.get("sparse_map_points")),
+            _fmt(w.get("loop_closures")), _fmt(w.get("map_hz")),
+            _fmt(w.get("dense_map_points"))]
+        lines.append("| " + " | ".join(cells) + " |")
     return lines
 
 
@@ -291,6 +299,7 @@ def plot_timeline(rows: Sequence[dict], path: str, title: str = "",
     step(ax, _col(rows, "tracking_ms", "median"), label="median")
     step(ax, _col(rows, "tracking_ms", "p90"), label="p90")
     ax.set_ylabel("tracking (ms / pair)")
+    ax.set_ylim(bottom=0)
     ax.legend(loc="upper left", fontsize=8)
     ax = axes[2]
     step(ax, 100.0 * _col(rows, "tracked_share"), color="tab:green")
@@ -299,9 +308,11 @@ def plot_timeline(rows: Sequence[dict], path: str, title: str = "",
     ax = axes[3]
     step(ax, _col(rows, "keyframes"), color="tab:blue")
     ax.set_ylabel("keyframes alive", color="tab:blue")
+    ax.set_ylim(bottom=0)
     ax2 = ax.twinx()
-    step(ax2, _col(rows, "sparse_map_points"), color="tab:orange")
-    ax2.set_ylabel("sparse map points", color="tab:orange")
+    step(ax2, _col(rows, "sparse_map_points"), color="tab:orange", ls="--")
+    ax2.set_ylabel("sparse map points (dashed)", color="tab:orange")
+    ax2.set_ylim(bottom=0)
     loops = _col(rows, "loop_closures")
     for x0, x1, n in zip(x[:-1], x[1:], loops):
         if np.isfinite(n) and n > 0:
@@ -312,6 +323,7 @@ def plot_timeline(rows: Sequence[dict], path: str, title: str = "",
     ax = axes[4]
     step(ax, _col(rows, "map_hz"), color="tab:purple")
     ax.set_ylabel("map integrations / s")
+    ax.set_ylim(bottom=0)
     ax.set_xlabel(time_label.replace("(s)", "(%s)" % unit))
     if title:
         axes[0].set_title(title)
