@@ -291,10 +291,11 @@ def plot_timeline(rows: Sequence[dict], path: str, title: str = "",
         for n in nodes:
             step(ax, _col(rows, "rss_mb", n), label=n)
         step(ax, _col(rows, "rss_mb", "total"), color="k", label="total")
-        ax.legend(loc="upper left", fontsize=8, ncol=4)
+        ax.legend(loc="best", fontsize=8, ncol=4)
     else:
         step(ax, _col(rows, "rss_mb"), color="k", label="process")
     ax.set_ylabel("RSS (MB)")
+    ax.set_ylim(bottom=0)
     ax = axes[1]
     step(ax, _col(rows, "tracking_ms", "median"), label="median")
     step(ax, _col(rows, "tracking_ms", "p90"), label="p90")
