@@ -877,6 +877,41 @@ def _two_keyframes(room, sequence, a=0, b=5):
     return mp, kfs
 
 
+def test_search_in_neighbors_fuses_the_points_two_keyframes_mapped_twice(room, sequence):
+    """ORB-SLAM2 SearchInNeighbors: two keyframes of one place that each made their own map
+    points from their stereo keypoints hold two copies of the place; fusing projects each one's
+    points into the other, so afterwards they share most of their points (a covisibility edge),
+    fewer points are alive, and every fused observation still reprojects onto its keypoint."""
+    from types import SimpleNamespace
+    from mdr_slam.pose import TrackerConfig
+    from mdr_slam.pose.local_mapping import LocalMapping
+    mp, (k0, k1) = _two_keyframes(room, sequence, 0, 3)
+    for k in (k0, k1):
+        idx = np.nonzero((k.depth > 0) & (k.depth < k.th_depth))[0]
+        mp.add_points(k.stereo_points_world(idx), k.desc[idx], k, idx)
+    n_before = mp.n_points
+    assert len(np.intersect1d(k0.valid_mp_ids(mp.mp_bad), k1.valid_mp_ids(mp.mp_bad))) == 0
+    lm = LocalMapping(SimpleNamespace(map=mp, threads=False, loop_closing=None), TrackerConfig())
+    n = lm.search_in_neighbors(k1)
+    shared = np.intersect1d(k0.valid_mp_ids(mp.mp_bad), k1.valid_mp_ids(mp.mp_bad))
+    assert n > 100 and len(shared) > 100, (n, len(shared))
+    assert mp.n_points < n_before - 50, (mp.n_points, n_before)
+    assert k1.connections.get(k0.id, 0) >= len(shared) - 5
+    for k in (k0, k1):   # observations point at live points that project onto their keypoints
+        kp = np.nonzero(k.mp_ids >= 0)[0]
+        assert not np.any(mp.mp_bad[k.mp_ids[kp]])
+        Pc = mp.mp_pos[k.mp_ids[kp]] @ k.T_cw[:3, :3].T + k.T_cw[:3, 3]
+        uv = np.c_[k.fx * Pc[:, 0] / Pc[:, 2] + k.cx, k.fy * Pc[:, 1] / Pc[:, 2] + k.cy]
+        err = np.linalg.norm(uv - k.uv[kp], axis=1)
+        assert np.median(err) < 1.0 and np.percentile(err, 95) < 4.0, np.percentile(err, 95)
+    # observation counts stay consistent with the keyframes' keypoints
+    nobs = np.zeros(mp.n, np.int64)
+    for k in (k0, k1):
+        kp = np.nonzero(k.mp_ids >= 0)[0]
+        np.add.at(nobs, k.mp_ids[kp], np.where(k.ur[kp] >= 0, 2, 1))
+    np.testing.assert_array_equal(nobs[~mp.mp_bad[:mp.n]], mp.mp_nobs[:mp.n][~mp.mp_bad[:mp.n]])
+
+
 def test_triangulation_yields_to_a_waiting_keyframe_only_when_live(room, sequence):
     """ORB-SLAM2 CheckNewKeyFrames: with threads (live) and a newer keyframe queued, the search
     stops after the first neighbour; offline (threads=False) every neighbour is searched."""
@@ -1635,7 +1670,8 @@ def test_a_weak_frame_asks_for_a_keyframe_while_local_mapping_is_busy():
     tr = SimpleNamespace(map=mp, system=SimpleNamespace(local_mapping=lm),
                          cfg=SimpleNamespace(max_frames=20), last_reloc_frame_id=-1000,
                          last_kf_frame_id=99, low_texture=lambda f: False, n_matches_inliers=0,
-                         ref_kf=SimpleNamespace(valid_mp_ids=lambda bad: np.arange(400)))
+                         ref_kf=SimpleNamespace(valid_mp_ids=lambda bad: np.arange(400)),
+                         mapped_view=lambda f: False)
     # 500 far stereo points, all tracked: no close-point rule
     frame = SimpleNamespace(id=100, depth=np.full(500, 50.0), th_depth=35.0,
                             mp_ids=np.arange(500))
@@ -1650,6 +1686,43 @@ def test_a_weak_frame_asks_for_a_keyframe_while_local_mapping_is_busy():
     assert not need(weak, queue=3)                  # LocalMapping too far behind
     assert not need(int(400 * tracking.WEAK_REF_RATIO) + 10)   # not weak: wait for an idle one
     assert need(90)                                 # ORB-SLAM2's own 0.25 still holds
+
+
+def test_a_view_an_earlier_pass_mapped_needs_no_keyframe():
+    """A frame tracked where a keyframe of an earlier pass in its local map saw the place from
+    close by (REVISIT_DISTANCE, REVISIT_ANGLE_DEG) needs no keyframe; a recent keyframe, one
+    farther, one looking elsewhere, or weak tracking does not count."""
+    from types import SimpleNamespace
+    from mdr_slam.pose import tracking
+    from mdr_slam.pose.tracking import Tracking
+    from mdr_slam.sim.trajectory import camera_rotation
+
+    def pose(x, yaw_deg):
+        T = np.eye(4)
+        T[:3, :3] = camera_rotation(np.radians([yaw_deg]), [0.0])[0]
+        T[0, 3] = x
+        return T
+
+    def kf(stamp, x, yaw_deg, bad=False):
+        return SimpleNamespace(stamp=stamp, T_cw=inv_T(pose(x, yaw_deg)), bad=bad)
+
+    frame = SimpleNamespace(stamp=100.0, T_wc=pose(0.0, 0.0))
+    tr = SimpleNamespace(n_matches_inliers=tracking.MIN_INLIERS, low_texture=lambda f: False,
+                         local_kfs=[])
+
+    def mapped(*kfs, inliers=tracking.MIN_INLIERS):
+        tr.local_kfs, tr.n_matches_inliers = list(kfs), inliers
+        return Tracking.mapped_view(tr, frame)
+
+    old = 100.0 - tracking.REVISIT_MIN_AGE - 1.0
+    assert mapped(kf(old, 0.2, 10.0))
+    assert not mapped(kf(99.0, 0.0, 0.0))                             # this pass's keyframe
+    assert not mapped(kf(old, tracking.REVISIT_DISTANCE + 0.05, 0.0))  # too far
+    assert not mapped(kf(old, 0.0, tracking.REVISIT_ANGLE_DEG + 5.0))  # looks elsewhere
+    assert not mapped(kf(old, 0.0, 0.0, bad=True))
+    assert not mapped(kf(old, 0.0, 0.0), inliers=tracking.MIN_INLIERS - 1)
+    tr.low_texture = lambda f: True                                   # blank wall: its minimum
+    assert mapped(kf(old, 0.0, 0.0), inliers=tracking.MIN_INLIERS_LOW_TEXTURE)
 
 
 def test_a_view_the_map_does_not_cover_is_tracked_by_visual_odometry_and_mapped(room):

@@ -41,6 +41,10 @@ MIN_CLOSE_POINTS = 100         # a new keyframe adds far stereo points only past
                                # (CreateNewKeyFrame: 100)
 CLOSE_TRACKED_RATIO = 0.45     # also a keyframe (LocalMapping idle) when fewer than this share of the
                                # close stereo points is tracked (bNeedToInsertClose: < 100 tracked, > 70 not)
+REVISIT_DISTANCE = 0.3         # m: no keyframe where a keyframe of an earlier pass (older than
+REVISIT_ANGLE_DEG = 15.0       # REVISIT_MIN_AGE) sees the place from this close, within this angle
+REVISIT_MIN_AGE = 5.0          # s, while the frame is tracked (not in ORB-SLAM2, whose culling
+                               # keeps a revisited place bounded only where its points are re-observed)
 MAX_LOCAL_KEYFRAMES = 60       # keyframes of the local map frames are tracked against (UpdateLocalKeyFrames: 80)
 RESET_IF_LOST_BELOW_KFS = 3    # LOST with at most this many keyframes: the map is reset (Track: 5)
 MIN_INLIERS = 30               # local-map inliers for OK (TrackLocalMap: 30)
@@ -833,10 +837,36 @@ class Tracking:
         return self.n_matches_inliers >= need
 
     # ------------------------------------------------------------------ keyframes
+    def mapped_view(self, frame: Frame) -> bool:
+        """A keyframe of an earlier pass (at least ``REVISIT_MIN_AGE`` s old) in the local map
+        sees this place from within ``REVISIT_DISTANCE`` and ``REVISIT_ANGLE_DEG``, and the frame
+        is tracked (the inliers track_local_map asks): the place is mapped and the view needs no
+        keyframe. The local map holds a keyframe of an earlier pass only where that place is
+        already linked to the current one (covisible, as after its loop closure), so a place
+        first revisited is still mapped and closed as a loop. On weak texture the keyframe rules
+        fire on every frame (few close points are tracked, the rest are sensor-noise corners no
+        other view re-finds), so without this a patrol added the same blank wall's keyframes and
+        points again on every lap, none of them redundant by ORB-SLAM2's culling rule."""
+        if self.n_matches_inliers < (MIN_INLIERS_LOW_TEXTURE if self.low_texture(frame)
+                                     else MIN_INLIERS):
+            return False
+        old = [k for k in self.local_kfs
+               if not k.bad and k.stamp <= frame.stamp - REVISIT_MIN_AGE]
+        if not old:
+            return False
+        T = frame.T_wc
+        C = np.array([-k.T_cw[:3, :3].T @ k.T_cw[:3, 3] for k in old])
+        Z = np.array([k.T_cw[2, :3] for k in old])     # optical axes in the world
+        near = np.linalg.norm(C - T[:3, 3], axis=1) <= REVISIT_DISTANCE
+        aligned = Z @ T[:3, 2] >= np.cos(np.radians(REVISIT_ANGLE_DEG))
+        return bool(np.any(near & aligned))
+
     def need_new_keyframe(self, frame: Frame) -> bool:
         mp = self.map
         lm = self.system.local_mapping
         n_kfs = len(mp.good_keyframes())
+        if self.mapped_view(frame):
+            return False
         max_frames, min_frames = self.cfg.max_frames, MIN_FRAMES
         if frame.id < self.last_reloc_frame_id + max_frames and n_kfs > max_frames:
             return False
