@@ -8,8 +8,8 @@ vocabulary node (ORB-SLAM2 SearchByBoW: ORBmatcher.search_by_bow) and fits the 3
 transform with RANSAC (batched Umeyama on 3-point samples; SE(3), since stereo fixes the scale);
 a candidate that fits is matched again over all descriptors and fitted on those, then the
 candidate's neighbourhood is projected with the corrected pose for more matches.
-Correction: the current keyframe's covisible group is moved by the loop transform, duplicate
-points are fused, and an SE(3) pose graph over the essential graph (spanning tree,
+Correction: the current keyframe's covisible group is moved by the loop transform, the loop
+side's points are fused into it (SearchAndFuse), and an SE(3) pose graph over the essential graph (spanning tree,
 strong covisibility edges >= 100, loop edges) is optimised with GTSAM BetweenFactorPose3; every
 map point follows its reference keyframe. The corrected keyframe poses are reported (reason
 ``loop_closure``) so depth and fusion re-anchor. Pose-graph edges carry information from the
@@ -64,9 +64,14 @@ BOW_NODE_DEPTH = 2             # depth of the vocabulary node loop matches share
                                # index: 4 levels up from the leaves of its 6-level tree, also depth 2)
 LOOP_REPROJECTION_REFINE = True  # BoW loop transform refined by the keyframe's pixels (OptimizeSim3)
 POSE_GRAPH_WEIGHTS = True      # pose-graph edge information from shared points (OptimizeEssentialGraph: equal)
+LOOP_FUSE_COVISIBLES = 10      # the loop keyframe's covisibles whose points are fused into the
+                               # corrected group (SearchAndFuse: all of them)
+LOOP_FUSE_RADIUS = 4.0         # projection search radius of that fusion, px at level 0 (SearchAndFuse: 4)
 GLOBAL_BA_ITERATIONS = 20      # iterations of each global BA (RunGlobalBundleAdjustment: 10)
 GLOBAL_BA_TOL = 1e-3           # a global BA round ends once a step lowers the cost by less than this
                                # share of it (local BA's BA_TOL; 0: every iteration)
+GLOBAL_BA_MIN_CORRECTION_M = 0.03    # a global BA follows a loop that moved the keyframe more than
+GLOBAL_BA_MIN_CORRECTION_DEG = 0.5   # this or turned it more than this (RunGlobalBundleAdjustment: always)
 GLOBAL_BA_MIN_KF_POINTS = 20   # keyframes seeing fewer points follow their parent in the global BA
 GLOBAL_BA_PROCESS = True       # threads: the global BA solved in a child process (out of the GIL) ...
 GLOBAL_BA_NICE = 10            # ... at this nice increment (it yields the CPU to tracking)
@@ -197,6 +202,7 @@ class LoopClosing:
         self.proximity_tries = 0                   # proximity verifications run (LK + PnP)
         self.one_way: List[tuple] = []             # refused by the two-way check (kf, cand, m, deg)
         self._exclude: set = set()
+        self.last_correction = (0.0, 0.0)          # (m, deg) of the last verified loop transform
         self._weak: List[tuple] = []               # (kf id, S) of weak proximity verifications
         self.ill_conditioned: List[tuple] = []     # refused: (kf, cand, inliers, rot sigma, turn deg)
 
@@ -274,12 +280,25 @@ class LoopClosing:
             if not closed and self._exclude and LOOP_PROXIMITY:
                 closed = self.try_proximity(kf)
             self.db.add(kf.id, bow)
-            if kf.id % 20 == 0:   # images of culled keyframes are no longer candidates
+            if kf.id % 20 == 0:   # culled keyframes are no longer candidates (KeyFrame::SetBadFlag
+                # erases them from the database): their images and BoW entries go
                 for k in [k for k in list(self.images) if k not in self.map.keyframes or
                           self.map.keyframes[k].bad]:   # list(): tracking adds meanwhile
                     self.images.pop(k, None)
-        if closed and self.cfg.global_ba:
+                for k in [k for k in self.db.bows if k not in self.map.keyframes or
+                          self.map.keyframes[k].bad]:
+                    self.db.erase(k)
+        if closed and self.cfg.global_ba and self.global_ba_pays():
             self.run_global_ba()
+
+    def global_ba_pays(self) -> bool:
+        """A full BA after a loop only where the loop moved the map by more than
+        ``GLOBAL_BA_MIN_CORRECTION_M`` or ``GLOBAL_BA_MIN_CORRECTION_DEG``: a place closed again
+        with a correction of millimetres is settled by the pose graph, and a full BA over the
+        whole map would cost seconds for nothing. (ORB-SLAM3 runs it only in maps of fewer than
+        200 keyframes.)"""
+        moved, rot = self.last_correction
+        return moved > GLOBAL_BA_MIN_CORRECTION_M or rot > GLOBAL_BA_MIN_CORRECTION_DEG
 
     def _gba_abort(self) -> bool:
         self.system.yield_to_tracking()   # per iteration, without the map lock
@@ -559,6 +578,7 @@ class LoopClosing:
         allowed = (float(LOOP_MAX_DRIFT) +
                    2.0 * np.sin(np.radians(rot) / 2.0)) * max(path, 1.0)
         ok = moved <= allowed and rot <= float(LOOP_MAX_ROTATION_DEG)
+        self.last_correction = (moved, rot)
         if not ok:
             self.rejected.append((kf.id, cand.id, moved, rot, path))
         return ok
@@ -658,6 +678,15 @@ class LoopClosing:
         free = (kf.mp_ids[new_kp] < 0) & ~mp.mp_bad[new_ids]   # guided-search matches
         if np.any(free):
             mp.add_observations(kf, new_kp[free], new_ids[free])
+        # SearchAndFuse: the loop side's points projected into every corrected keyframe of the
+        # group, the loop side's copy surviving; otherwise the group keeps its duplicates, the
+        # next keyframes track those, and the place is mapped (and closed) again on every pass
+        loop_kfs = [cand] + mp.best_covisibles(cand, LOOP_FUSE_COVISIBLES)
+        loop_pts = np.unique(np.concatenate([k.valid_mp_ids(mp.mp_bad) for k in loop_kfs]))
+        for k in group:
+            if not k.bad:
+                ids_, kp_ = self.matcher.fuse(k, mp, loop_pts, th=LOOP_FUSE_RADIUS)
+                mp.fuse_points(k, ids_, kp_, keep_given=True)
         kf.loop_edges.append(cand.id)
         cand.loop_edges.append(kf.id)
         # new covisibility links created by the fusion are loop edges too (ORB-SLAM2

@@ -222,7 +222,8 @@ class Map:
         dead = np.zeros(self.n + 1, dtype=bool)   # one slot more: index -1 (no point) stays False
         dead[ids] = True
         for kf in self.keyframes.values():   # a lookup per keyframe, not np.isin's sort
-            kf.mp_ids[dead[kf.mp_ids]] = -1
+            if not kf.bad:                   # a culled keyframe has no observations left
+                kf.mp_ids[dead[kf.mp_ids]] = -1
         self.mp_nobs[ids] = 0
 
     def observers(self, mp_id: int) -> List[KeyFrame]:
@@ -270,17 +271,27 @@ class Map:
         old, new = old[keep], new[keep]
         if len(old) == 0:
             return
-        lut = np.arange(self.n, dtype=np.int64)
+        lut = np.arange(self.n + 1, dtype=np.int64)   # one slot more: index -1 maps to itself
+        lut[-1] = -1
         lut[old] = new
+        is_old = np.zeros(self.n + 1, dtype=bool)
+        is_old[old] = True
         for kf in self.keyframes.values():
-            m = np.nonzero(kf.mp_ids >= 0)[0]
-            ids = kf.mp_ids[m]
-            hit = np.isin(ids, old)
-            if not np.any(hit):
+            if kf.bad:     # a culled keyframe has no observations left
                 continue
-            tgt = lut[ids[hit]]
-            already = np.isin(tgt, ids[~hit])
-            kp = m[hit]
+            kp = np.nonzero(is_old[kf.mp_ids])[0]
+            if len(kp) == 0:
+                continue
+            tgt = lut[kf.mp_ids[kp]]
+            mine = np.zeros(self.n + 1, dtype=bool)
+            mine[kf.mp_ids] = True
+            mine[-1] = False
+            already = mine[tgt]
+            # two old points of this keyframe with the same target: the first keypoint keeps it
+            _, first = np.unique(tgt, return_index=True)
+            dup = np.ones(len(tgt), dtype=bool)
+            dup[first] = False
+            already |= dup
             kf.mp_ids[kp[~already]] = tgt[~already]
             kf.mp_ids[kp[already]] = -1
             np.add.at(self.mp_nobs, tgt[~already], np.where(kf.ur[kp[~already]] >= 0, 2, 1))
@@ -288,6 +299,34 @@ class Map:
         self.mp_found[new] += self.mp_found[old]
         self.mp_bad[old] = True
         self.mp_nobs[old] = 0
+
+    def fuse_points(self, kf: KeyFrame, ids: np.ndarray, kp: np.ndarray,
+                    keep_given: bool = False) -> int:
+        """Apply ORBmatcher.fuse matches (point ``ids[i]`` at keypoint ``kp[i]`` of ``kf``): a
+        free keypoint gains the observation; one that sees another point fuses the two, the
+        point with more observations surviving (ORB-SLAM2 Fuse), or the given one when
+        ``keep_given`` (loop side, SearchAndFuse). Returns the number of matches applied."""
+        ids = np.asarray(ids, dtype=np.int64)
+        kp = np.asarray(kp, dtype=np.int64)
+        ok = ~self.mp_bad[ids]
+        ids, kp = ids[ok], kp[ok]
+        if len(ids) == 0:
+            return 0
+        cur = kf.mp_ids[kp]
+        free = cur < 0
+        if np.any(free):
+            self.add_observations(kf, kp[free], ids[free])
+        occ = ~free & (cur != ids)
+        cur, ids = cur[occ], ids[occ]
+        live = ~self.mp_bad[cur]
+        cur, ids = cur[live], ids[live]
+        if len(cur):
+            if keep_given:
+                self.replace_points(cur, ids)
+            else:
+                given_wins = self.mp_nobs[ids] >= self.mp_nobs[cur]
+                self.replace_points(np.where(given_wins, cur, ids), np.where(given_wins, ids, cur))
+        return int(np.count_nonzero(free)) + len(cur)
 
     def mp_view(self, mp_id: int) -> MapPoint:
         return MapPoint(self, mp_id)

@@ -74,12 +74,13 @@ class ORBmatcher:
 
     def match_projections(self, frame, u, v, radius, desc, lvl_lo, lvl_hi, ur=None,
                           th_dist: int = TH_HIGH, ratio: Optional[float] = None,
-                          angle=None) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+                          angle=None, free_only: bool = True
+                          ) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(point index, keypoint index, distance) for projections (u, v) searched in ``frame``.
 
         ``radius`` per point (px); keypoint octave must lie in [lvl_lo, lvl_hi]; when ``ur`` is
         given, a keypoint with a right coordinate must also match it within the radius. Only free
-        keypoints (frame.mp_ids < 0) are candidates.
+        keypoints (frame.mp_ids < 0) are candidates, unless ``free_only`` is false (fusion).
         """
         P = len(u)
         empty = (np.zeros(0, np.int64),) * 2 + (np.zeros(0, np.int32),)
@@ -88,7 +89,7 @@ class ORBmatcher:
         i, j, _ = frame.grid.pairs_within(u, v, radius)
         if len(i) == 0:
             return empty
-        ok = frame.mp_ids[j] == -1
+        ok = frame.mp_ids[j] == -1 if free_only else np.ones(len(j), dtype=bool)
         oc = frame.octave[j]
         ok &= (oc >= lvl_lo[i]) & (oc <= lvl_hi[i])
         if ur is not None:
@@ -169,6 +170,53 @@ class ORBmatcher:
         frame.mp_ids[j] = ids[i]
         frame.outlier[j] = False
         return len(i), ids
+
+    def fuse(self, kf, map_, ids: np.ndarray, T_cw: Optional[np.ndarray] = None,
+             th: float = 3.0) -> Tuple[np.ndarray, np.ndarray]:
+        """ORB-SLAM2 ORBmatcher::Fuse: project map points ``ids`` into keyframe ``kf`` (at
+        ``T_cw``, default its own pose) and match each to a keypoint near its projection at the
+        predicted level, free or not, within TH_LOW and the reprojection chi2 (stereo where the
+        keypoint has a right coordinate). Points ``kf`` already sees are skipped. Returns
+        (point ids, keypoint indices), one point per keypoint (the closest descriptor); the
+        caller adds the observation or fuses the two points (Map.fuse_points)."""
+        none = np.zeros(0, np.int64), np.zeros(0, np.int64)
+        ids = np.asarray(ids, dtype=np.int64)
+        ids = ids[~map_.mp_bad[ids]]
+        if len(ids) == 0 or kf.N == 0:
+            return none
+        seen = np.zeros(map_.n + 1, dtype=bool)
+        seen[kf.mp_ids] = True      # index -1 (no point) lands in the spare slot
+        ids = ids[~seen[ids]]
+        if len(ids) == 0:
+            return none
+        T_cw = kf.T_cw if T_cw is None else T_cw
+        Pw = map_.mp_pos[ids]
+        Pc = transform_points(T_cw, Pw)
+        z = Pc[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = kf.fx * Pc[:, 0] / z + kf.cx
+            v = kf.fy * Pc[:, 1] / z + kf.cy
+        PO = Pw + T_cw[:3, :3].T @ T_cw[:3, 3]     # Pw - camera centre
+        dist = np.linalg.norm(PO, axis=1)
+        view_cos = np.einsum("ij,ij->i", PO, map_.mp_normal[ids]) / np.maximum(dist, 1e-9)
+        ok = ((z > 0) & (u >= 0) & (u < kf.width) & (v >= 0) & (v < kf.height) &
+              (dist >= 0.8 * map_.mp_min_dist[ids]) & (dist <= 1.2 * map_.mp_max_dist[ids]) &
+              (view_cos >= 0.5))
+        ids, u, v, z, dist = ids[ok], u[ok], v[ok], z[ok], dist[ok]
+        if len(ids) == 0:
+            return none
+        lvl = map_.predict_scale(ids, dist, kf.log_scale, kf.nlevels)
+        ur = u - kf.bf / z
+        i, j, _ = self.match_projections(kf, u, v, th * kf.scale[lvl], map_.mp_desc[ids],
+                                         lvl - 1, lvl, th_dist=TH_LOW, free_only=False)
+        if len(i) == 0:
+            return none
+        # reprojection error of the point at the keypoint (ORB-SLAM2: chi2 at 95 %)
+        e2 = (u[i] - kf.uv[j, 0]) ** 2 + (v[i] - kf.uv[j, 1]) ** 2
+        st = kf.ur[j] >= 0
+        e2 = e2 + np.where(st, (ur[i] - kf.ur[j]) ** 2, 0.0)
+        good = e2 * kf.inv_level_sigma2[kf.octave[j]] <= np.where(st, 7.8, 5.99)
+        return ids[i[good]], j[good].astype(np.int64)
 
     @staticmethod
     def search_by_bow(desc1: np.ndarray, node1: np.ndarray, desc2: np.ndarray, node2: np.ndarray,
