@@ -125,3 +125,25 @@ def test_session_folder_rotates_files_without_session(tmp_path):
     with folder_lock(last):
         assert session_folder(last, "B", "dense") == (last, True)
     assert folder_sessions(generation(last, 1)) == {"dense": ""}
+
+
+def test_a_map_file_is_rotated_with_its_sidecars(tmp_path):
+    """A map_path naming a file (map.ply) is kept as a folder is: map.ply -> map.1.ply ... with
+    its anchors and metadata sidecars, the oldest generation dropped."""
+    from mdr_slam.io.map_dir import file_generation, rotate_file
+    p = str(tmp_path / "map.ply")
+    assert not rotate_file(p, keep=2)
+    for gen in range(3):
+        for suffix in ("", ".anchors.json"):
+            with open(p + suffix, "w") as f:
+                f.write("gen%d" % gen)
+        with open(str(tmp_path / "map.json"), "w") as f:
+            f.write("meta%d" % gen)
+        assert rotate_file(p, keep=2)
+        assert not os.path.exists(p)
+    assert file_generation(p, 1) == str(tmp_path / "map.1.ply")
+    assert open(str(tmp_path / "map.1.ply")).read() == "gen2"
+    assert open(str(tmp_path / "map.1.ply.anchors.json")).read() == "gen2"
+    assert open(str(tmp_path / "map.1.json")).read() == "meta2"
+    assert open(str(tmp_path / "map.2.ply")).read() == "gen1"
+    assert not os.path.exists(str(tmp_path / "map.3.ply"))

@@ -23,7 +23,7 @@ import os
 __all__ = ["DENSE_MAP_FILE", "POSE_MAP_FILE", "MapPathError", "default_map_dir", "resolve_map_path",
            "map_files", "SESSION_KEY", "ROTATE_KEEP", "new_session_id", "next_session_id",
            "folder_sessions", "check_folder_sessions", "generation", "rotate_folder", "folder_lock",
-           "session_folder", "after_rotation", "find_session"]
+           "session_folder", "after_rotation", "find_session", "file_generation", "rotate_file"]
 
 DENSE_MAP_FILE = "dense_map.ply"
 POSE_MAP_FILE = "pose_map.npz"
@@ -233,3 +233,32 @@ def session_folder(folder: str, session: str, part: str, keep: int = ROTATE_KEEP
         if sk and all(v == session for v in sk.values()):
             return generation(folder, k), False
     return folder, rotate_folder(folder, keep)
+
+
+def file_generation(path: str, k: int) -> str:
+    """The ``k``-th older generation of a map file (``map.1.ply``); ``k`` 0: the file."""
+    stem, ext = os.path.splitext(path)
+    return path if k == 0 else "%s.%d%s" % (stem, k, ext)
+
+
+def _file_members(path: str) -> list:
+    """A dense map file and its sidecars (fusion.map_io: anchors, metadata)."""
+    return [path, path + ".anchors.json", os.path.splitext(path)[0] + ".json"]
+
+
+def rotate_file(path: str, keep: int = ROTATE_KEEP) -> bool:
+    """A map that ``map_path`` names as a file, kept as :func:`rotate_folder` keeps a folder:
+    ``map.ply`` -> ``map.1.ply`` -> ... -> ``map.<keep>.ply``, each with its sidecars (the oldest
+    deleted). False (nothing moved) when the file does not exist."""
+    if not os.path.isfile(path):
+        return False
+    keep = max(1, int(keep))
+    for m in _file_members(file_generation(path, keep)):
+        if os.path.exists(m):
+            os.remove(m)
+    for k in range(keep - 1, -1, -1):
+        for src, dst in zip(_file_members(file_generation(path, k)),
+                            _file_members(file_generation(path, k + 1))):
+            if os.path.exists(src):
+                os.replace(src, dst)
+    return True

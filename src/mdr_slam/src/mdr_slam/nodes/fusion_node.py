@@ -62,7 +62,8 @@ from ..io.atomic import remove_stale_temporaries
 from ..msg_checks import cloud_problem
 from ..io.map_dir import (ROTATE_KEEP, MapPathError, after_rotation, check_folder_sessions,
                           default_map_dir, find_session, folder_lock, folder_sessions, map_files,
-                          next_session_id, resolve_map_path, session_folder)
+                          next_session_id, resolve_map_path, session_folder, file_generation,
+                          rotate_file)
 from ..nav import map_min_confidence, map_products
 from .common import (ClockWatch, RunMarker, StampGuard, Throttled, base_session, read_config,
                      skip_future_stamp, transform_listener)
@@ -485,6 +486,10 @@ class FusionNode:
         except (IOError, OSError, ValueError) as e:
             rospy.logerr("fusion_node: could not keep the map before the %s: %s", why, e)
             return "; the map before it could not be kept: %s" % e, False
+        if not _is_folder(self.map_path) and rotate_file(self.map_path):
+            # a map_path naming a file has no session folders: the file itself is kept aside,
+            # or the new session's first autosave would overwrite it
+            path, rotated = file_generation(self.map_path, 1), True
         rospy.loginfo("fusion_node: %s: the map before it (%d points, session %s) is kept in %s",
                       why, n, self.session, path)
         return "; the map before it is kept in %s" % path, rotated
@@ -544,6 +549,8 @@ class FusionNode:
             kept, rotated = self._keep_before_clear("load_map")
             if rotated and _is_folder(self.map_path):
                 path = after_rotation(path, self.map_path, ROTATE_KEEP)
+            elif rotated and os.path.abspath(path) == os.path.abspath(self.map_path):
+                path = file_generation(self.map_path, 1)
         try:
             n = self.load(path, append=req.append)
         except (IOError, OSError, ValueError) as e:
