@@ -142,7 +142,12 @@ def test_lost_skips_integration_and_resumes_after_relocalization(lost_bag, rosco
                   # waits for tf as the depth node does: a cloud stamped while LOST then reaches
                   # the LOST gate instead of failing its pose lookup first (tf of the relocalized
                   # pose a moment late: CI once saw 3 LOST clouds and "skipped: lost" 0)
-                  tf_timeout=5.0)
+                  tf_timeout=5.0,
+                  # every cloud reaches the gate: with the default queue a busy node drops the
+                  # oldest waiting clouds, and the few stamped while LOST come first in the burst
+                  # the depth node sends after relocalization (CI once received 71 of 152 clouds,
+                  # none of the 4 LOST ones, and "skipped: lost" stayed 0)
+                  cloud_queue=1000)
     depth = yaml.safe_load(open(os.path.join(ROOT, "src", "mdr_slam", "config", "depth.yaml")))
     depth.update(tracking_state_topic="",   # no LOST pause: the fusion node must gate (3.)
                  tf_timeout=5.0,   # waits for the relocalized pose: LOST frames get interpolated
@@ -223,9 +228,10 @@ def test_lost_skips_integration_and_resumes_after_relocalization(lost_bag, rosco
     assert diag, "no fusion diagnostics\n" + out[-3000:]
     final = diag[-1][1]
     skipped_lost = int(final.get("skipped: lost", 0))
-    print("clouds %d (stamped while LOST %d: %s), fusion: integrated %s, received %s, skipped lost "
-          "%d" % (len(clouds), len(lost_clouds), lost_clouds, final.get("clouds integrated"),
-                  final.get("clouds received"), skipped_lost))
+    print("clouds %d (stamped while LOST %d: %s), fusion: integrated %s, received %s, %s" % (
+        len(clouds), len(lost_clouds), lost_clouds, final.get("clouds integrated"),
+        final.get("clouds received"),
+        ", ".join("%s %s" % kv for kv in sorted(final.items()) if kv[0].startswith("skipped"))))
     assert lost_clouds, "no cloud stamped while LOST was published: the gating was not exercised"
     assert skipped_lost >= 1, "the fusion node did not skip the clouds stamped while LOST %s" % (
         lost_clouds,)
