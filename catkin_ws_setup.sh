@@ -11,7 +11,10 @@
 # Debian's own ROS packages (Debian 12: ros-core-dev, python3-rospy, ...).
 #
 # Environment: MDR_WITH_RVIZ=0 skips rviz (default 1: the demo takes an rviz screenshot);
-#              MDR_SKIP_APT=1 never calls apt (for machines where you manage packages yourself).
+#              MDR_SKIP_APT=1 never calls apt (for machines where you manage packages yourself);
+#              MDR_BUILD_NAVIGATION=1 builds move_base (ROS navigation) when none is installed,
+#              from MDR_NAVIGATION_TARBALL (default ../shared/thirdparty/ros-navigation-*.tar.gz),
+#              into ~/.cache/mdr_slam/navigation-<sha256 prefix> (MDR_CACHE_DIR), once per tarball.
 set -eo pipefail
 
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)
@@ -89,7 +92,80 @@ mkdir -p "$ROOT/build"
 catkin_make -DPYTHON_EXECUTABLE="$PY" -DCMAKE_BUILD_TYPE=Release > "$ROOT/build/catkin_make.log" 2>&1 \
   || { tail -40 "$ROOT/build/catkin_make.log"; log "catkin_make failed (log: build/catkin_make.log)"; exit 1; }
 
-# ---------------------------------------------------------------- 4. root setup.bash
+# ---------------------------------------------------------------- 4. move_base (optional)
+# An installed move_base (Noetic: ros-noetic-navigation) is used as is. Debian packages none, so
+# on request the navigation stack is built from a source tarball into its own workspace outside
+# the checkout (minutes of build: cached, shared by checkouts, keyed by the tarball's hash).
+NAV_WS=""
+nav_installed() {   # in a clean environment: our own cached workspace does not count
+  env -i PATH=/usr/local/bin:/usr/bin:/bin HOME="$HOME" bash -c \
+    '[ -z "$1" ] || source "$1"; rospack find move_base' _ "$ROS_SETUP" >/dev/null 2>&1
+}
+tarball="${MDR_NAVIGATION_TARBALL:-}"
+if [ -z "$tarball" ]; then
+  tarball=$(ls -1 "$ROOT"/../shared/thirdparty/ros-navigation-*.tar.gz 2>/dev/null | tail -1 || true)
+fi
+if [ -n "$tarball" ] && [ -f "$tarball" ]; then
+  NAV_WS="${MDR_CACHE_DIR:-$HOME/.cache/mdr_slam}/navigation-$(sha256sum "$tarball" | cut -c1-16)"
+fi
+if nav_installed; then
+  NAV_WS=""
+  log "move_base: installed, used as is"
+elif [ -n "$NAV_WS" ] && [ -f "$NAV_WS/.built" ]; then
+  log "move_base: built earlier in $NAV_WS"
+elif [ "${MDR_BUILD_NAVIGATION:-0}" != 1 ]; then
+  NAV_WS=""
+  log "move_base: not found (MDR_BUILD_NAVIGATION=1 builds it from the navigation tarball)"
+elif [ -z "$NAV_WS" ]; then
+  log "move_base: no navigation tarball (${tarball:-../shared/thirdparty/ros-navigation-*.tar.gz}): not built, its tests skip"
+else
+  if [ -n "$ROS_SETUP" ]; then
+    NAV_APT=(ros-noetic-dynamic-reconfigure ros-noetic-map-msgs ros-noetic-move-base-msgs
+             ros-noetic-laser-geometry ros-noetic-tf2-sensor-msgs ros-noetic-angles
+             ros-noetic-tf2-eigen ros-noetic-pluginlib ros-noetic-actionlib
+             ros-noetic-visualization-msgs libnetpbm10-dev)
+  else
+    NAV_APT=(libdynamic-reconfigure-config-init-mutex-dev python3-dynamic-reconfigure
+             libmap-msgs-dev libmove-base-msgs-dev liblaser-geometry-dev
+             libtf2-sensor-msgs-dev libangles-dev libnetpbm-dev libtf2-eigen-dev)
+  fi
+  missing=()
+  for p in "${NAV_APT[@]}"; do
+    dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
+  done
+  if [ "${#missing[@]}" -gt 0 ]; then
+    if [ "${MDR_SKIP_APT:-0}" = 1 ]; then
+      log "MDR_SKIP_APT=1 but move_base's build needs: ${missing[*]}"; exit 1
+    fi
+    log "installing move_base's build dependencies with apt: ${missing[*]}"
+    $SUDO apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+  fi
+  mkdir -p "$(dirname "$NAV_WS")"
+  exec 9> "$NAV_WS.lock"   # one build at a time: several checkouts may set up at once
+  flock 9
+  if [ ! -f "$NAV_WS/.built" ]; then
+    log "move_base: building $(basename "$tarball") in $NAV_WS (minutes; log: $NAV_WS/build.log)"
+    rm -rf "$NAV_WS"
+    mkdir -p "$NAV_WS/src"
+    tar -xzf "$tarball" -C "$NAV_WS/src"
+    t0=$(date +%s)
+    # a clean environment, so the workspace chains to ROS only, not to this checkout or its venv
+    env -i PATH=/usr/local/bin:/usr/bin:/bin HOME="$HOME" LANG=C.UTF-8 bash -c \
+      '[ -z "$1" ] || source "$1"; cd "$2" && catkin_make -j2 -DCATKIN_ENABLE_TESTING=OFF \
+         -DCMAKE_BUILD_TYPE=Release -DPYTHON_EXECUTABLE=/usr/bin/python3' \
+      _ "$ROS_SETUP" "$NAV_WS" > "$NAV_WS/build.log" 2>&1 \
+      || { tail -40 "$NAV_WS/build.log"; log "move_base build failed (log: $NAV_WS/build.log)"; exit 1; }
+    echo "$(basename "$tarball") built in $(( $(date +%s) - t0 )) s" > "$NAV_WS/.built"
+    log "move_base: $(cat "$NAV_WS/.built")"
+  else
+    log "move_base: built meanwhile in $NAV_WS"
+  fi
+  flock -u 9
+  exec 9>&-
+fi
+
+# ---------------------------------------------------------------- 5. root setup.bash
 cat > "$ROOT/setup.bash" <<EOF
 # Written by catkin_ws_setup.sh: activates the venv and the catkin devel space.
 # Usage: source setup.bash
@@ -97,4 +173,10 @@ ${ROS_SETUP:+source "$ROS_SETUP"}
 source "$VENV/bin/activate"
 source "$ROOT/devel/setup.bash"
 EOF
+if [ -n "$NAV_WS" ]; then
+  cat >> "$ROOT/setup.bash" <<EOF
+# move_base, built by catkin_ws_setup.sh (MDR_BUILD_NAVIGATION=1) in a workspace of its own
+if [ -f "$NAV_WS/devel/setup.bash" ]; then source "$NAV_WS/devel/setup.bash" --extend; fi
+EOF
+fi
 log "done. Now: source setup.bash"
