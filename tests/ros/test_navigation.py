@@ -145,6 +145,38 @@ def test_navigation_launch_parses_with_and_without_move_base():
                                                        "/bag_player", "/move_base"}
 
 
+def test_navigation_launch_passes_every_mdr_launch_argument():
+    """navigation.launch declares every argument of mdr.launch with the same default and hands it
+    to mdr.launch, so an option of the map nodes works the same with move_base; and roslaunch
+    really applies one (weak_texture, mapping_nice, depth_malloc_arena_max)."""
+    import xml.etree.ElementTree as ET
+
+    def declared(root):
+        return {a.get("name"): a.get("default") for a in root.findall("arg") if "default" in a.attrib}
+    mdr = ET.parse(os.path.join(ROOT, "launch", "mdr.launch")).getroot()
+    nav = ET.parse(os.path.join(ROOT, "launch", "navigation.launch")).getroot()
+    want, have = declared(mdr), declared(nav)
+    inc = [i for i in nav.findall("include") if i.get("file").endswith("/launch/mdr.launch")]
+    assert len(inc) == 1
+    passed = {a.get("name"): a.get("value") for a in inc[0].findall("arg")}
+    missing = sorted(set(want) - set(have))
+    other_default = {k: (want[k], have[k]) for k in want if k in have and have[k] != want[k]}
+    not_passed = sorted(k for k in want if passed.get(k) != "$(arg %s)" % k)
+    print("mdr.launch: %d arguments; navigation.launch lacks %s, other defaults %s, not passed %s"
+          % (len(want), missing, other_default, not_passed))
+    assert not missing and not other_default and not not_passed
+    assert set(passed) <= set(want)       # roslaunch refuses an argument mdr.launch does not declare
+
+    r = subprocess.run(["roslaunch", "--dump-params", os.path.join(ROOT, "launch", "navigation.launch"),
+                        "weak_texture:=sgbm", "move_base:=true"], capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert yaml.safe_load(r.stdout)["/depth_node/weak_texture"] == "sgbm"
+    r = subprocess.run(["roslaunch", "--args", "depth_node", os.path.join(ROOT, "launch", "navigation.launch"),
+                        "mapping_nice:=3"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and r.stdout.startswith("nice -n 3 "), (r.stdout, r.stderr)
+
+
 # ---------------------------------------------------------------------- (b) the sample map
 MID_FRAME = 300   # 15 s into the sample: the pure-rotation segment, the map full of young points
 
