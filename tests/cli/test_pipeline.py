@@ -131,8 +131,9 @@ def test_mdr_run_tracks_unless_told_to_use_the_ground_truth(tiny_sim, tmp_path):
 def test_orb_map_is_base_link_at_the_start_with_base_to_camera(small_sim):
     """As the pose node: with ``base_to_camera`` (T_base_cam) the offline runner's ORB trajectory
     and map are in base_link at the first tracked frame (REP-105 map), i.e. T_base_cam times what
-    it gives without (the tracker's first camera frame); the same run otherwise."""
-    from mdr_slam.geometry import parse_transform, transform_points
+    it gives without (a level camera looking along base_link's x: T_BASE_OPTICAL @ the tracker's
+    first camera frame); the same run otherwise."""
+    from mdr_slam.geometry import T_BASE_OPTICAL, inv_T, parse_transform, transform_points
     from mdr_slam.pipeline import Pipeline, PipelineConfig, frames_from_bag
     mount = "0.1 0 1.3 -0.5416 0.5416 -0.4545 0.4545"   # 1.3 m up, 10 deg down
     out = {}
@@ -147,13 +148,15 @@ def test_orb_map_is_base_link_at_the_start_with_base_to_camera(small_sim):
     A = parse_transform(mount)
     (Ta, Pa), (Tb, Pb) = out[""], out[mount]
     assert len(Ta) == len(Tb) >= 15 and min(len(Pa), len(Pb)) > 100
-    np.testing.assert_allclose(Ta[0], np.eye(4), atol=1e-9)
-    np.testing.assert_allclose(Tb, A[None] @ Ta, atol=1e-6)
+    np.testing.assert_allclose(Ta[0], T_BASE_OPTICAL, atol=1e-9)
+    B = A @ inv_T(T_BASE_OPTICAL)   # from the default map to the mount's
+    np.testing.assert_allclose(Tb, B[None] @ Ta, atol=1e-6)
     # the same surfaces, voxelized along other axes: each map point near one of the other map's
     from scipy.spatial import cKDTree
-    d = cKDTree(transform_points(A, Pa)).query(Pb)[0]
+    d = cKDTree(transform_points(B, Pa)).query(Pb)[0]
     assert np.median(d) < 0.02 and np.percentile(d, 90) < 0.05, (np.median(d), np.percentile(d, 90))
-    assert np.median(cKDTree(Pa).query(Pb)[0]) > 0.5   # ... and not the map of the first frame
+    # ... and not the map of the first camera frame
+    assert np.median(cKDTree(transform_points(inv_T(T_BASE_OPTICAL), Pa)).query(Pb)[0]) > 0.5
 
 
 def test_ablation_switches_change_the_map(small_sim, tmp_path):

@@ -63,9 +63,10 @@ def _orb_node(start_process, name, prefix, *args):
 def test_orb_node_tracks_synthetic_stream(rospy_client, start_process, tmp_path, mount):
     """With ``base_to_camera`` the ORB node's map is base_link where tracking starts (REP-105):
     every pose, keyframe pose, tf and the saved trajectory is T_base_cam @ (the tracker's pose in
-    its first camera frame); without it map is the first camera's optical frame."""
+    its first camera frame); without it (and no tf) base_link is a level camera looking along x,
+    so map is still z-up: the camera's optical z is map's x, its y (down) map's -z."""
     rospy = rospy_client
-    from mdr_slam.geometry import parse_transform
+    from mdr_slam.geometry import base_to_camera
     from mdr_slam import conversions as cv
     from mdr_slam.geometry import inv_T
     from mdr_slam_msgs.msg import KeyFrameArray, TrackingState
@@ -74,7 +75,7 @@ def test_orb_node_tracks_synthetic_stream(rospy_client, start_process, tmp_path,
 
     cam, poses, frames = _orbit(12, np.pi / 4)
     traj_path = str(tmp_path / "exit.txt")
-    A = parse_transform(mount)
+    A = base_to_camera(mount)
     node = _orb_node(start_process, "orb_test", "/t", "_trajectory_path:=" + traj_path,
                      "_map_dir:=%s" % (tmp_path / "maps"),
                      *(["_base_to_camera:=" + mount] if mount else []))
@@ -100,6 +101,10 @@ def test_orb_node_tracks_synthetic_stream(rospy_client, start_process, tmp_path,
     assert [s.state for s in states].count(TrackingState.OK) == len(frames)
     assert wait_for(lambda: len(got) == len(frames), 5)
     np.testing.assert_allclose(cv.pose_stamped_to_matrix(got[0]), A, atol=1e-6)   # map = base at start
+    if not mount:   # z-up map, forward-looking base_link, and a warning saying what was assumed
+        np.testing.assert_allclose(A[:3, :3] @ [0, 0, 1], [1, 0, 0], atol=1e-12)
+        np.testing.assert_allclose(A[:3, :3] @ [0, 1, 0], [0, 0, -1], atol=1e-12)
+        assert "assuming a level camera at base_link's origin looking along its x" in node.output()
     T_est = cv.pose_stamped_to_matrix(got[-1])
     T_true = A @ inv_T(poses[0]) @ poses[-1]
     assert np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]) < 0.05
@@ -272,7 +277,7 @@ def test_orb_node_with_the_orbslam3_backend_or_without_it(rospy_client, start_pr
     rospy = rospy_client
     from mdr_slam import conversions as cv
     from mdr_slam.camera import StereoCamera
-    from mdr_slam.geometry import inv_T
+    from mdr_slam.geometry import T_BASE_OPTICAL, inv_T
     from mdr_slam.pose.synthetic import BoxRoom, orbit_trajectory
     from mdr_slam_msgs.msg import KeyFrameArray, TrackingState
     from geometry_msgs.msg import PoseStamped
@@ -307,7 +312,7 @@ def test_orb_node_with_the_orbslam3_backend_or_without_it(rospy_client, start_pr
     ok = [s.state for s in states].count(TrackingState.OK)
     assert ok >= len(frames) - 2 and wait_for(lambda: len(got) == ok, 5), node.output()
     T_est = cv.pose_stamped_to_matrix(got[-1])
-    T_true = inv_T(poses[0]) @ poses[-1]
+    T_true = T_BASE_OPTICAL @ inv_T(poses[0]) @ poses[-1]   # no mount given: the default one
     assert np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]) < 0.05, (T_est, T_true)
     log = node.output()
     if variant == "orbslam3_missing":

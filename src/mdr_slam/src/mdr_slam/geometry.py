@@ -10,10 +10,15 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 __all__ = [
-    "parse_transform",
+    "parse_transform", "R_OPTICAL", "T_BASE_OPTICAL", "base_to_camera",
     "make_T", "inv_T", "transform_points", "quat_to_R", "R_to_quat", "T_from_pos_quat",
     "pos_quat_from_T", "is_valid_T", "rotation_angle", "relative_motion", "body_twist",
 ]
+
+
+# REP-103: an optical frame (x right, y down, z forward) in its x-forward, y-left, z-up body
+# frame; the rotation of tf's static_transform_publisher "-pi/2 0 -pi/2"
+R_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 
 def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -116,6 +121,13 @@ def body_twist(T0: np.ndarray, T1: np.ndarray, dt: float):
     return D[:3, 3] / dt, w / dt
 
 
+def base_to_camera(text) -> np.ndarray:
+    """T_base_cam from the ``base_to_camera`` parameter; empty: :data:`T_BASE_OPTICAL`, a level
+    camera at base_link's origin looking along its x, so that a map anchored at base_link is
+    z-up (REP-103/105) even when nothing says how the camera is mounted."""
+    return parse_transform(text, default=T_BASE_OPTICAL.copy())
+
+
 def parse_transform(text, default=None) -> np.ndarray:
     """4x4 matrix from "x y z qx qy qz qw" (or "x y z yaw pitch roll"), as static_transform_publisher."""
     if text is None or (isinstance(text, str) and not text.strip()):
@@ -126,3 +138,7 @@ def parse_transform(text, default=None) -> np.ndarray:
     if len(vals) == 6:
         return make_T(Rotation.from_euler("ZYX", vals[3:]).as_matrix(), vals[:3])
     raise ValueError("a transform is 'x y z qx qy qz qw' or 'x y z yaw pitch roll', got %r" % (text,))
+
+
+# base_link -> camera optical frame of a level, forward-looking camera at base_link's origin
+T_BASE_OPTICAL = make_T(R_OPTICAL, [0.0, 0.0, 0.0])

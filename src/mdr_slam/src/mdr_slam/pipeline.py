@@ -35,7 +35,7 @@ from .config import split_known
 from .depth import DepthConfig, StereoDepth
 from .fusion import VoxelMap, VoxelMapConfig
 from .fusion.map_io import load_dense_map, save_dense_map
-from .geometry import is_valid_T, parse_transform
+from .geometry import base_to_camera, is_valid_T
 from .io import Trajectory, atomic_write, datasets, write_tum
 from .io.map_dir import DENSE_MAP_FILE, map_files
 from .nodes import node_configs
@@ -155,7 +155,7 @@ class Pipeline:
             tracker = TrackerConfig.pick(pp)
             # map is base_link where tracking starts, as the pose node publishes (REP-105)
             self.tracker = make_system(camera, tracker, threads=False,
-                                       T_map_cam0=parse_transform(pp.get("base_to_camera", "")))
+                                       T_map_cam0=base_to_camera(pp.get("base_to_camera", "")))
         self.map_loaded = False
         self.map_load_error = ""
         self.relocalized_at = None            # stamp of the first frame relocalized in the loaded map

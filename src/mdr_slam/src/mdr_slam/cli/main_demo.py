@@ -9,7 +9,7 @@ a report and pictures under ``--out`` (default ``output/``):
                             rendered under Xvfb (when rviz is installed; --no-rviz skips it)
 
 By default the ORB tracker (node 1's core) poses the frames, as on a robot, and the map is in the
-tracker's ``map`` frame (its first camera pose); to score it, it is moved into the ground truth's
+tracker's ``map`` frame (base_link where tracking starts); to score it, it is moved into the ground truth's
 frame by the SE(3) alignment of the trajectory (Umeyama), as evo aligns trajectories. With
 ``--pose-source groundtruth`` the sample's true poses place the depth (the launch file's
 ``pose_source:=groundtruth``), so the map shows what depth and fusion alone make of the sequence.

@@ -29,7 +29,7 @@ from ..camera import CalibrationError, StereoCamera, images_are_rectified
 from ..conversions import (ConversionError, camera_info_to_model, image_msg_to_mono8 as to_mono8,
                            matrix_to_pose, matrix_to_pose_stamped, matrix_to_transform_stamped,
                            pose_stamped_to_matrix, transform_stamped_to_matrix)
-from ..geometry import body_twist, inv_T, is_valid_T, parse_transform, rotation_angle
+from ..geometry import base_to_camera, body_twist, inv_T, is_valid_T, rotation_angle
 from ..io.map_dir import MapPathError, resolve_map_path
 from ..io.trajectory import write_kitti_poses, write_tum
 from ..pose import System, TrackerConfig, make_system
@@ -161,7 +161,7 @@ class PoseRelay:
                 if not wait:
                     return False
                 time.sleep(0.05)
-        T = parse_transform(p.base_to_camera)
+        T = base_to_camera(p.base_to_camera)
         root = frame_root(self.tf_buffer, frame)
         T_root = np.eye(4)
         if root != frame:   # the camera has a tree of its own (e.g. a driver's): attach its root
@@ -174,10 +174,17 @@ class PoseRelay:
         if self.static_tf is not None and root != base:
             self.static_tf.sendTransform(matrix_to_transform_stamped(
                 T @ inv_T(T_root), rospy.Time(0), base, root))
-        (rospy.loginfo if given else rospy.logwarn)(
-            "pose_node: no tf %s <- %s: publishing %s -> %s from %s", base, frame, base, root,
-            "~base_to_camera" if given else "identity (no ~base_to_camera: the map frame is the "
-            "first camera pose)")
+        if given:
+            rospy.loginfo("pose_node: no tf %s <- %s: publishing %s -> %s from ~base_to_camera",
+                          base, frame, base, root)
+        else:
+            rospy.logwarn(
+                "pose_node: no tf %s <- %s and no ~base_to_camera: assuming a level camera at %s's "
+                "origin looking along its x (REP-103), published as %s -> %s. %s Give the mount "
+                "(URDF, or ~base_to_camera \"x y z qx qy qz qw\") for the map's floor and the "
+                "grid's obstacle heights.", base, frame, base, base, root,
+                "map is the ground truth's frame." if p.source == "groundtruth" else
+                "map is z-up at %s where tracking starts, i.e. at the camera's height." % base)
         return True
 
     def from_the_future(self, t: float, what: str) -> bool:

@@ -41,7 +41,7 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from ..camera import CameraModel
-from ..geometry import inv_T, make_T, R_to_quat
+from ..geometry import R_OPTICAL, inv_T, make_T, R_to_quat
 from ..io.atomic import atomic_write
 from .generate import generate
 from .render import _EUROC_RAW
@@ -65,10 +65,6 @@ JPEG_QUALITY = 80           # compressed_image_transport's default jpeg_quality
 # because this odometry integrates the base's full 3-D increments
 ODOM_POSE_COV = (1e-3, 1e-3, 1e-3, 1e-3, 1e-3, 1e-2)
 ODOM_TWIST_COV = (1e-3, 1e-3, 1e-3, 1e-3, 1e-3, 1e-2)
-
-# REP-103: an optical frame (x right, y down, z forward) in its x-forward, y-left, z-up body
-# frame; the rotation of tf's static_transform_publisher "-pi/2 0 -pi/2"
-R_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 BASE_FRAME = "base_link"
 ODOM_FRAME = "odom"
