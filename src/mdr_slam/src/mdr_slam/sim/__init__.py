@@ -11,6 +11,7 @@ a specular band, corridor cornering, pure rotation), rendered by exact ray casti
     generate("/tmp/patrol", scene="garage", duration=60.0, laps=5)    # 5 laps of 60 s, one bag
     generate("/tmp/floor", scene="floor")          # the floor's ~105 m route at ~0.9 m/s
     generate_driver("/tmp/zed", "zed", compressed="jpeg", duration=30.0)  # as a ZED robot records
+    robot = SimRobot(RobotConfig(scene="office"))  # a diff-drive base: cmd_vel in, pair + odometry out
 """
 from __future__ import annotations
 
@@ -20,8 +21,9 @@ from .trajectory import KINDS, LOOP_KINDS, SimTrajectory, build_trajectory, make
 from .render import Simulator, sim_camera
 from .generate import generate
 from .driver import DRIVERS, generate_driver
+from .robot import RobotConfig, SimRobot
 
 __all__ = ["make_scene", "make_trajectory", "build_trajectory", "Simulator", "generate",
-           "generate_driver", "DRIVERS", "sim_camera", "Scene", "Rect", "SimTrajectory", "SCENES",
-           "KINDS", "LOOP_KINDS", "LABELS",
+           "generate_driver", "DRIVERS", "RobotConfig", "SimRobot", "sim_camera", "Scene", "Rect",
+           "SimTrajectory", "SCENES", "KINDS", "LOOP_KINDS", "LABELS",
            "LABEL_NONE", "LABEL_LOW_TEXTURE", "LABEL_TEXTURED", "LABEL_SPECULAR"]
