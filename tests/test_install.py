@@ -39,7 +39,7 @@ PATH_VARS = ("PATH", "PYTHONPATH", "ROS_PACKAGE_PATH", "CMAKE_PREFIX_PATH", "LD_
 # packages (rosdep/python.yaml); any other key must come from the shipped YAML
 ROS_KEYS = {"catkin", "rospy", "rosbag", "roslaunch", "rosbash", "rosgraph", "genpy",
             "message_filters", "tf2_ros", "tf2_msgs", "std_msgs", "std_srvs", "sensor_msgs",
-            "geometry_msgs", "nav_msgs", "diagnostic_msgs", "diagnostic_updater",
+            "geometry_msgs", "nav_msgs", "rosgraph_msgs", "diagnostic_msgs", "diagnostic_updater",
             "message_generation", "message_runtime"}
 SYSTEM_KEYS = {"python3-setuptools", "python3-rospkg", "python3-numpy", "python3-scipy",
                "python3-opencv", "python3-yaml", "python3-psutil", "python3-matplotlib",
@@ -141,7 +141,7 @@ def test_install_space_has_the_package_files(install_space):
                 assert os.path.exists(p), "broken symlink %s -> %s" % (p, os.readlink(p))
                 assert _inside(p, [os.path.realpath(prefix)]), \
                     "%s links out of the install prefix to %s" % (p, os.path.realpath(p))
-    for exe in NODES + ("mdr",):
+    for exe in NODES + ("sim_robot_node", "mdr"):
         p = os.path.join(prefix, "lib", "mdr_slam", exe)
         assert os.path.isfile(p) and os.access(p, os.X_OK), p
     assert os.access(os.path.join(prefix, "bin", "mdr"), os.X_OK)
