@@ -6,7 +6,8 @@ camera are there). The node owns sim time: it runs one frame period of physics w
 only then advances ``/clock`` to it, so the simulation runs as fast as the CPU renders, capped at
 ``~real_time_factor`` (sim seconds per wall second; consumers must set ``/use_sim_time``, as
 sim_robot.launch does). ``~wait_for_topic`` makes it also wait (up to ``~wait_timeout`` wall s)
-for a consumer's output stamped at the frame, e.g. ``mdr/pose``: lockstep with the tracker.
+for a consumer's output stamped at the frame, e.g. ``mdr/pose``: lockstep with the tracker
+(starting once the left image has a subscriber and that topic a publisher).
 
 Topics (relative names; ``~layout`` stereo, else a driver's, see mdr_slam.sim.driver):
 
@@ -50,6 +51,12 @@ from .health import ProcessHealth, RateWindow
 NODE = "sim_robot_node"
 _POSE_COV = [float(v) for v in np.diag(ODOM_POSE_COV).ravel()]
 _TWIST_COV = [float(v) for v in np.diag(ODOM_TWIST_COV).ravel()]
+
+
+def _time(t: float):
+    """rospy.Time of ``t`` s, rounded to the nanosecond (from_sec truncates: 81.9 would be
+    stamped 81.899999999)."""
+    return rospy.Time(0, int(round(float(t) * 1e9)))
 
 
 def read_params() -> RobotConfig:
@@ -117,8 +124,10 @@ class SimRobotNode:
         self.tf = tf2_ros.TransformBroadcaster()
         self.tf_static = tf2_ros.StaticTransformBroadcaster()
         rospy.Subscriber("cmd_vel", Twist, self.on_cmd, queue_size=10)
+        self.consumer = None
         if cfg.wait_for_topic:
-            rospy.Subscriber(cfg.wait_for_topic, rospy.AnyMsg, self.on_consumer, queue_size=10)
+            self.consumer = rospy.Subscriber(cfg.wait_for_topic, rospy.AnyMsg, self.on_consumer,
+                                             queue_size=10)
         if not rospy.get_param("/use_sim_time", False):
             rospy.logwarn("%s: /use_sim_time is not set: nodes on wall time do not follow this "
                           "node's /clock (sim_robot.launch sets it)", NODE)
@@ -151,13 +160,13 @@ class SimRobotNode:
 
     # --- output
     def publish_static(self) -> None:
-        stamp = rospy.Time.from_sec(self.robot.t)
+        stamp = _time(self.robot.t)
         self.tf_static.sendTransform([matrix_to_transform_stamped(T, stamp, p, c)
                                       for p, c, T in self.lay.static])
 
     def publish_frame(self, t: float, pair, odometry) -> None:
         cfg, r, lay = self.cfg, self.robot, self.lay
-        stamp = rospy.Time.from_sec(t)
+        stamp = _time(t)
         if pair is not None:
             for side, frame in ((0, lay.left_frame), (1, lay.right_frame)):
                 img = pair["left" if side == 0 else "right"]
@@ -168,7 +177,7 @@ class SimRobotNode:
                                                                  frame))
         tfs = []
         for ts, T, v, w in odometry:
-            st = rospy.Time.from_sec(ts)
+            st = _time(ts)
             msg = Odometry()
             msg.header = make_header(st, cfg.odom_frame)
             msg.child_frame_id = cfg.base_frame
@@ -220,9 +229,24 @@ class SimRobotNode:
                 "rss_mb": "%.1f" % self.health.rss_mb()}
         st.values = [KeyValue(k, v) for k, v in vals.items()]
         arr = DiagnosticArray()
-        arr.header = make_header(rospy.Time.from_sec(r.t))
+        arr.header = make_header(_time(r.t))
         arr.status = [st]
         self.pub_diag.publish(arr)
+
+    def wait_for_connections(self) -> None:
+        """Lockstep starts once the consumer is there: it subscribes to the left image and
+        publishes ~wait_for_topic (no frame is lost before it listens). The clock is re-sent
+        meanwhile for nodes that start later."""
+        t0 = time.monotonic()
+        told = False
+        while not rospy.is_shutdown() and not (self.pub_img[0].get_num_connections() > 0 and
+                                               self.consumer.get_num_connections() > 0):
+            if not told and time.monotonic() - t0 > 5.0:
+                told = True
+                rospy.loginfo("%s: waiting for a subscriber of %s and a publisher of %s", NODE,
+                              rospy.resolve_name(self.lay.left_image), self.consumer.name)
+            self.pub_clock.publish(Clock(_time(self.robot.t)))
+            time.sleep(0.2)
 
     def wait_for_consumer(self, t: float) -> None:
         deadline = time.monotonic() + self.cfg.wait_timeout
@@ -241,8 +265,10 @@ class SimRobotNode:
         wall_step = period / cfg.real_time_factor if cfg.real_time_factor > 0 else 0.0
         self.publish_static()
         self.publish_collisions()
-        self.pub_clock.publish(Clock(rospy.Time.from_sec(r.t)))
+        self.pub_clock.publish(Clock(_time(r.t)))
         self.publish_frame(r.t, None, [(r.t, r.odom.matrix(), 0.0, 0.0)])
+        if self.consumer is not None:
+            self.wait_for_connections()
         self.wall_start = deadline = last_diag = last_log = time.monotonic()
         n_coll = 0
         while not rospy.is_shutdown():
@@ -255,7 +281,7 @@ class SimRobotNode:
             self.render_cpu_ms += (cpu - self.render_cpu_ms) / min(self.frames, 50)
             self.publish_frame(r.t, pair, odometry)
             # sim time reaches the frame only once it is out
-            self.pub_clock.publish(Clock(rospy.Time.from_sec(r.t)))
+            self.pub_clock.publish(Clock(_time(r.t)))
             self.fps.tick()
             if r.n_collisions != n_coll:
                 for i, c in enumerate(r.collisions[n_coll:], n_coll + 1):
@@ -283,9 +309,9 @@ class SimRobotNode:
                 else:
                     deadline = now
         wall = max(time.monotonic() - self.wall_start, 1e-6)
-        rospy.loginfo("%s: stopped after %d frames in %.1f wall s (%.2f frames per wall s, sim/wall "
-                      "%.2f), %.2f m driven, %d collisions, %d lateral commands ignored", NODE,
-                      self.frames, wall, self.frames / wall, (r.t - self.sim_start) / wall,
+        rospy.loginfo("%s: stopped after %d frames in %.1f wall s (%.2f frames per wall s, "
+                      "sim/wall %.2f), %.2f m driven, %d collisions, %d lateral commands ignored",
+                      NODE, self.frames, wall, self.frames / wall, (r.t - self.sim_start) / wall,
                       r.distance, r.n_collisions, r.lateral_commands)
 
 

@@ -86,8 +86,8 @@ class RobotConfig(Config):
     odom_noise_yaw: float = 0.5        # deg per sqrt(m) of wheel travel (random walk)
     start_pose: str = ""               # "x y yaw" of base_link in map; "": the scene trajectory's
     publish_tf: bool = True            # odom -> base_link on /tf
-    ground_truth_frame: str = "ground_truth_camera"  # tf map -> it per frame (as bags); "": none
-    wait_for_topic: str = ""           # after a frame, wait for a message stamped >= it on this topic
+    ground_truth_frame: str = "ground_truth_camera"  # tf map -> it per frame (bags'); "": none
+    wait_for_topic: str = ""           # after a frame, wait for a message stamped at it here
     wait_timeout: float = 1.0          # s (wall) of that wait
     diagnostics_period: float = 1.0    # s (wall) between /diagnostics messages
 
@@ -578,9 +578,11 @@ class SimRobot:
         odometry due at odom_rate as ``(t, T_odom_base, v, w)`` (measured velocities)."""
         n = max(1, int(round(duration * self.cfg.physics_rate)))
         dt = duration / n
+        t0 = self.t
         out = []
-        for _ in range(n):
+        for i in range(n):
             self.step(dt)
+            self.t = t0 + (i + 1) * dt     # not a running sum: stamps stay on the frame grid
             if self.n_steps % self.odom_every == 0:
                 out.append((self.t, self.odom.matrix(), self.odom.v, self.odom.w))
         return out
