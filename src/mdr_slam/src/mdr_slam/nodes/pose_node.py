@@ -52,8 +52,10 @@ BASE_TF_WAIT = 1.0        # s (wall) from the first result, waiting for tf base 
                           # fallback (tracking goes on; its results are published once known) ...
 BASE_TF_WAIT_GIVEN = 0.2  # ... and when ~base_to_camera gives one (then tf is only checked)
 HELD_POLL = 0.05          # s: how often a tracking thread without frames looks for that transform
-MAP_ODOM_RATE = 20.0      # Hz: map -> odom re-sent (future-dated one period) with wheel odometry,
-                          # so tf stays valid while tracking is LOST or the camera stalls
+MAP_ODOM_RATE = 20.0      # Hz: map -> odom re-sent with wheel odometry, so tf stays valid while
+                          # tracking is LOST or the camera stalls ...
+MAP_ODOM_AHEAD = 0.25     # s: ... future-dated by this (amcl's transform_tolerance): more than a
+                          # resend period plus one step of a stepping sim clock (a 10 Hz /clock)
 ODOM_LOOKUP_TIMEOUT = 0.05  # s to wait for the robot's odom -> base_link at an image stamp
 # /mdr/odom covariance (the README's topic table): the tracker's pose is good to about a
 # centimetre and half a degree on the project's sequences (ATE 0.2-1 % of the path); twist from
@@ -112,6 +114,7 @@ class PoseRelay:
         self.wheel_odom = False            # the robot's odometry owns odom -> base_link
         self._last_odom_pose = None        # (stamp s, T_map_base) for the twist
         self._last_map_odom = None         # T_map_odom re-sent by the timer (wheel odometry)
+        self._ahead_stamp = None           # stamp of the last future-dated map -> odom
         self.tf_buffer = tf2_ros.Buffer(cache_time=rospy.Duration(30.0))
         self.tf_listener = transform_listener(self.tf_buffer, float(p.max_future_stamp),
                                               self.warn, "pose_node", self._on_tf)
@@ -300,15 +303,21 @@ class PoseRelay:
             time.sleep(0.005)
 
     def _resend_map_odom(self, _event=None) -> None:
-        """Wheel odometry: the last map -> odom again, future-dated by one period (as amcl
-        does), so lookups at the current time succeed while no image is tracked."""
+        """Wheel odometry: the last map -> odom again, future-dated by MAP_ODOM_AHEAD (as amcl
+        does), so lookups at the current time succeed while no image is tracked. Not re-sent
+        while the clock stands still (a stepping sim clock): tf2 refuses a repeated stamp."""
         T = self._last_map_odom
         if T is None or self.tf is None:
             return
-        self.tf.sendTransform(self._map_odom_ahead(T))
+        tr = self._map_odom_ahead(T)
+        if tr is not None:
+            self.tf.sendTransform(tr)
 
     def _map_odom_ahead(self, T_map_odom: np.ndarray):
-        stamp = rospy.Time.now() + rospy.Duration(1.0 / MAP_ODOM_RATE)
+        stamp = rospy.Time.now() + rospy.Duration(MAP_ODOM_AHEAD)
+        if stamp == self._ahead_stamp:   # the sim clock has not moved since the last one
+            return None
+        self._ahead_stamp = stamp
         return matrix_to_transform_stamped(T_map_odom, stamp, self.p.map_frame, self.p.odom_frame)
 
     def _odometry(self, stamp, T_map_base, T_map_odom):
@@ -382,7 +391,9 @@ class PoseRelay:
                 tfs.append(matrix_to_transform_stamped(self._last_map_odom, stamp,
                                                        p.map_frame, p.odom_frame))
                 if first:   # valid at the current time now, not only from the timer's next tick
-                    tfs.append(self._map_odom_ahead(self._last_map_odom))
+                    ahead = self._map_odom_ahead(self._last_map_odom)
+                    if ahead is not None:
+                        tfs.append(ahead)
         else:
             tfs.append(matrix_to_transform_stamped(T_map_odom, stamp, p.map_frame,
                                                    p.odom_frame))
