@@ -40,7 +40,8 @@ PATH_VARS = ("PATH", "PYTHONPATH", "ROS_PACKAGE_PATH", "CMAKE_PREFIX_PATH", "LD_
 ROS_KEYS = {"catkin", "rospy", "rosbag", "roslaunch", "rosbash", "rosgraph", "genpy",
             "message_filters", "tf2_ros", "tf2_msgs", "std_msgs", "std_srvs", "sensor_msgs",
             "geometry_msgs", "nav_msgs", "rosgraph_msgs", "diagnostic_msgs", "diagnostic_updater",
-            "message_generation", "message_runtime"}
+            "message_generation", "message_runtime", "actionlib", "actionlib_msgs",
+            "move_base_msgs"}
 SYSTEM_KEYS = {"python3-setuptools", "python3-rospkg", "python3-numpy", "python3-scipy",
                "python3-opencv", "python3-yaml", "python3-psutil", "python3-matplotlib",
                "python3-pil", "python3-pandas"}

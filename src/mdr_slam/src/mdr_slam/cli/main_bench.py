@@ -7,6 +7,8 @@
         [--max-range 4] [--configs elas_only,temporal,confidence,full,full_elas,sgbm_tsdf]
     mdr bench BAG --out DIR --compare [--runs 3] [--no-live] [--max-frames N]
     mdr bench --compare --kitti DIR | --euroc DIR --out DIR [--runs 3] [--max-frames N]
+    mdr bench --navigate --out DIR [--scenes office,corridor,garage] [--seed N] [--goals 10]
+        (the simulated robot driven by move_base on the map: mdr_slam.cli.bench_navigate)
 
 Live (``mdr bench BAG``): starts a private roscore, ``roslaunch mdr_slam mdr.launch bag:=BAG`` (the
 three nodes and ``rosbag play --clock``), samples every node's CPU % and RSS once a second (psutil),
@@ -85,6 +87,11 @@ def add_parser(sub, name, help_text):
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("bag", nargs="?", help="bag to play live (omit with --ablation)")
     p.add_argument("--ablation", action="store_true", help="run the offline map ablation")
+    p.add_argument("--navigate", action="store_true",
+                   help="the robot in the loop: simulated robot, mdr.launch and move_base, "
+                        "seeded goals per scene (default scenes office,corridor,garage)")
+    p.add_argument("--goals", type=int, default=10, help="--navigate: goals per scene")
+    p.add_argument("--navigate-scene", default=None, help=argparse.SUPPRESS)
     p.add_argument("--compare", action="store_true",
                    help="compare the built-in tracker (mdr) with ORB-SLAM3 (orbslam3): live and "
                         "offline, --runs times each")
@@ -103,7 +110,8 @@ def add_parser(sub, name, help_text):
     p.add_argument("--window", type=_seconds, default=None, metavar="S",
                    help="live: the report's time windows, s (default: 60 for runs of 5 minutes "
                         "or more, else about a sixth of the run), e.g. --window 300")
-    p.add_argument("--scenes", default="office,corridor")
+    p.add_argument("--scenes", default=None,
+                   help="--ablation: default office,corridor; --navigate: office,corridor,garage")
     p.add_argument("--duration", type=float, default=30.0)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--pose-source", choices=("groundtruth", "orb"), default=None,
@@ -151,6 +159,9 @@ def _run_parallel(cmds, jobs):
 
 
 def run(args) -> int:
+    if args.navigate:
+        from .bench_navigate import run_navigate
+        return run_navigate(args)
     if args.compare:
         return run_compare(args)
     if args.kitti or args.euroc:
@@ -291,7 +302,7 @@ def run_compare(args) -> int:
 
 def run_ablation(args) -> int:
     os.makedirs(args.out, exist_ok=True)
-    scenes = [s for s in args.scenes.split(",") if s]
+    scenes = [s for s in (args.scenes or "office,corridor").split(",") if s]
     configs = [c for c in args.configs.split(",") if c]
     for c in configs:
         if c not in CONFIGS and c not in PEERS:
