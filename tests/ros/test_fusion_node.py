@@ -98,10 +98,15 @@ def test_fusion_node_end_to_end(rospy_client, start_process, tmp_path):
     assert g and g.header.frame_id == "map" and g.info.resolution == pytest.approx(0.05)
     data = np.array(g.data, np.int8).reshape(g.info.height, g.info.width)
     assert (data == 100).sum() > 10
-    # grid origin + cell size cover the wall's footprint (x in [0, 2], y about 4)
+    # the known cells cover the wall's footprint (x in [0, 2], y about 4); unknown cells pad the
+    # grid to whole grid_extent_step squares (5 m) around them and the camera
     ox, oy = g.info.origin.position.x, g.info.origin.position.y
-    assert ox == pytest.approx(0.0, abs=0.06) and ox + g.info.width * 0.05 == pytest.approx(2.0, abs=0.06)
-    assert oy <= 4.0 <= oy + g.info.height * 0.05
+    rows, cols = np.nonzero(data >= 0)
+    assert ox + cols.min() * 0.05 == pytest.approx(0.0, abs=0.06)
+    assert ox + (cols.max() + 1) * 0.05 == pytest.approx(2.0, abs=0.06)
+    assert oy + rows.min() * 0.05 <= 4.0 <= oy + (rows.max() + 1) * 0.05
+    assert np.allclose(np.array([ox, oy, g.info.width * 0.05, g.info.height * 0.05]) / 5.0,
+                       np.round(np.array([ox, oy, g.info.width * 0.05, g.info.height * 0.05]) / 5.0))
 
     def fusion_diag():
         for d in diags[::-1]:

@@ -28,7 +28,7 @@ from scipy.ndimage import distance_transform_edt
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from .fusion import occupancy_grid, voxel_downsample
+from .fusion import grid_axes, occupancy_grid, voxel_downsample
 
 __all__ = ["Plan", "world_to_cell", "cell_to_world", "grid_from_msg", "traversable", "plan_path",
            "map_min_confidence", "map_views", "map_products"]
@@ -228,7 +228,7 @@ def map_views(cloud) -> Optional[np.ndarray]:
     return np.stack([cloud["view_x"], cloud["view_y"], cloud["view_z"]], 1).astype(np.float64)
 
 
-def map_products(cloud: dict, params: dict):
+def map_products(cloud: dict, params: dict, extent=None, around=None):
     """What the fusion node publishes from one snapshot ``cloud`` of its map
     (:meth:`mdr_slam.fusion.VoxelMap.to_cloud` at ``min(map_min_confidence(params))`` or lower:
     fields ``x y z intensity confidence``).
@@ -240,7 +240,9 @@ def map_products(cloud: dict, params: dict):
     ``/mdr/map/grid`` from the points of confidence ``>= grid_min_confidence`` (None when
     ``publish_grid`` is off): with ``grid_raytrace`` and the cloud's views (``view_x, view_y,
     view_z``) free space along the rays (``grid_raytrace_range``), and wall gaps of at most
-    ``grid_max_gap`` closed (missing keys: off). Both are in the map frame.
+    ``grid_max_gap`` closed (missing keys: off). Both are in the map frame. ``extent``, a
+    :class:`mdr_slam.fusion.GridExtent`, pads the grid to its extent, kept around the ``map``
+    positions ``around`` ((N, 3), the camera), so that move_base's costmap is rarely resized.
 
     move_base's obstacle layer marks ``/mdr/map/points`` between its min/max obstacle heights
     (config/navigation: ``grid_z_min``/``grid_z_max``) and never clears them (the cloud is in
@@ -261,6 +263,13 @@ def map_products(cloud: dict, params: dict):
                               None if views is None else views[sel],
                               float(p.get("grid_max_gap", 0.0)),
                               float(p.get("grid_raytrace_range", 0.0)))
+        if extent is not None:
+            xy = np.zeros((0, 2))
+            if around is not None and len(around):
+                xy = (np.asarray(around, np.float64).reshape(-1, 3)
+                      @ grid_axes(p["grid_up_axis"]).T)[:, :2]
+            data, origin = extent.apply(grid[0], grid[1], xy)
+            grid = (data, origin, grid[2])
     keep = conf_all >= mc_disp
     xyz = xyz[keep]
     inten = np.asarray(cloud["intensity"])[keep]

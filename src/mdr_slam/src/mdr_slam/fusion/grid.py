@@ -7,7 +7,7 @@ from typing import Optional
 
 import numpy as np
 
-__all__ = ["grid_axes", "grid_origin_T", "occupancy_grid", "close_wall_gaps"]
+__all__ = ["grid_axes", "grid_origin_T", "occupancy_grid", "close_wall_gaps", "GridExtent"]
 
 _AXES = {"x": np.array([1.0, 0, 0]), "y": np.array([0, 1.0, 0]), "z": np.array([0, 0, 1.0])}
 
@@ -314,3 +314,50 @@ def close_wall_gaps(grid: np.ndarray, resolution: float, max_gap: float) -> int:
     cells = np.unique(y[fill] * W + x[fill])
     grid[cells // W, cells % W] = 100
     return int(len(cells))
+
+
+class GridExtent:
+    """The extent of a published grid that grows in whole steps and never shrinks.
+
+    move_base's static layer resizes the whole global costmap whenever a grid's size or origin
+    changes, and the resized costmap is blank until its next update: a plan made meanwhile goes
+    through walls. A grid as wide as its content's bounding box changes with nearly every map
+    update. Here the extent is the bounding box snapped
+    outwards to a lattice of ``step`` metres (anchored at the map origin), joined with every
+    earlier extent and with a square of ``margin`` metres around each given position (the
+    camera: the robot and the depth sensor's origin then lie inside the global costmap, which
+    costmap_2d requires to plan and to clear). It changes only when the map or the robot crosses
+    a lattice line. ``step`` 0: the bounding box itself (no padding, no memory)."""
+
+    def __init__(self, resolution: float, step: float = 5.0, margin: float = 2.0):
+        self.res = float(resolution)
+        self.step = max(1, int(round(float(step) / self.res))) if step > 0 else 0   # cells
+        self.margin = float(margin) if step > 0 else 0.0
+        self.box = None          # (col0, row0, col1, row1) cells, inclusive-exclusive
+
+    def apply(self, grid, origin, around=()):
+        """``(grid, origin)`` padded with unknown cells (-1) to the extent, updated with this
+        grid and the grid-plane positions ``around`` ((N, 2) metres)."""
+        if not self.step:
+            return grid, origin
+        res = self.res
+        H, W = grid.shape
+        c0, r0 = int(round(origin[0] / res)), int(round(origin[1] / res))
+        lo = [c0, r0]
+        hi = [c0 + W, r0 + H]
+        for xy in np.asarray(around, np.float64).reshape(-1, 2):
+            if not np.isfinite(xy).all():
+                continue
+            a = np.floor((xy - self.margin) / res).astype(np.int64)
+            b = np.floor((xy + self.margin) / res).astype(np.int64) + 1
+            lo = [min(lo[0], int(a[0])), min(lo[1], int(a[1]))]
+            hi = [max(hi[0], int(b[0])), max(hi[1], int(b[1]))]
+        k = self.step
+        box = (lo[0] // k * k, lo[1] // k * k, -(-hi[0] // k) * k, -(-hi[1] // k) * k)
+        if self.box is not None:
+            box = (min(box[0], self.box[0]), min(box[1], self.box[1]),
+                   max(box[2], self.box[2]), max(box[3], self.box[3]))
+        self.box = box
+        out = np.full((box[3] - box[1], box[2] - box[0]), -1, np.int8)
+        out[r0 - box[1]:r0 - box[1] + H, c0 - box[0]:c0 - box[0] + W] = grid
+        return out, (float(box[0] * res), float(box[1] * res))

@@ -97,6 +97,8 @@ class FusionNodeConfig(Config):
     display_voxel: float = 0.05     # m, display downsampling of /mdr/map/points; 0: every point
     display_min_confidence: int = 3  # /mdr/map/points; keep >= grid_min_confidence (move_base marks these)
     publish_grid: bool = True       # /mdr/map/grid (nav_msgs/OccupancyGrid) for move_base
+    publish_nav_grid: bool = True   # /mdr/map/nav_grid: the same grid, unknown cells free (move_base's
+                                    # static layer: config/navigation/costmap_common_params.yaml)
     grid_resolution: float = 0.05   # m per grid cell
     grid_z_min: float = 0.1         # m, obstacle band along grid_up_axis ...
     grid_z_max: float = 1.5         # m, ... up to this
@@ -106,6 +108,10 @@ class FusionNodeConfig(Config):
     grid_raytrace: bool = True      # free cells along the ray from each point's camera to the point
     grid_raytrace_range: float = 0.0  # m, free only the first this many metres of a ray; 0: whole ray
     grid_max_gap: float = 0.5       # m, close gaps up to this in straight walls where no ray passed; 0: off
+    grid_extent_step: float = 5.0   # m: the grid's extent grows in steps of this (fewer move_base
+                                    # costmap resizes, each blank until its next update); 0: bounding box
+    grid_margin: float = 2.0        # m kept around the camera inside the grid (move_base's robot and
+                                    # depth sensor must lie in the global costmap)
     # files (writes are atomic: temporary file + rename)
     map_dir: str = ""               # the services' paths resolve inside it; "": $ROS_HOME/mdr_maps
     map_path: str = "last"          # map folder (in map_dir; or a .ply/.pcd file) of autosave and ~save_map

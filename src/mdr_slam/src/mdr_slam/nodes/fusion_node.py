@@ -9,7 +9,10 @@ A thin shell around :class:`mdr_slam.fusion.VoxelMap` (paper section 3.4):
 * each cloud is anchored to the latest keyframe (``/mdr/keyframes``) not newer than it; when the
   pose node publishes corrected keyframe poses (local BA, loop closure) the map points follow.
 * ``/mdr/map/points`` (latched, ``~publish_rate`` Hz, voxel-downsampled for display: x, y, z,
-  intensity, confidence) and ``/mdr/map/grid`` (nav_msgs/OccupancyGrid, latched) for move_base.
+  intensity, confidence) and ``/mdr/map/grid`` (nav_msgs/OccupancyGrid, latched) for move_base;
+  ``/mdr/map/nav_grid`` is the same grid with its unknown cells free (move_base's static layer).
+  The grid's extent grows in steps of ``~grid_extent_step`` m and holds the camera with a
+  ``~grid_margin``, so move_base's global costmap is rarely resized and holds the robot.
 * map folders (mdr_slam.io.map_dir): services ``~save_map``, ``~load_map`` (a folder name inside
   ``~map_dir``; a .ply/.pcd path names one file; with a folder they also call the pose node's
   ``~save_map``/``~load_map``, ``~pose_node``), ``~reset``, ``~export_mesh``; ``~load_map`` param
@@ -54,7 +57,7 @@ from std_srvs.srv import Trigger, TriggerResponse
 from ..conversions import (ConversionError, arrays_to_pointcloud2, matrix_to_pose,
                            pointcloud2_to_arrays, pose_stamped_to_matrix, pose_to_matrix,
                            transform_stamped_to_matrix)
-from ..fusion import VoxelMap, VoxelMapConfig, grid_origin_T, limit_openmp_threads
+from ..fusion import GridExtent, VoxelMap, VoxelMapConfig, grid_origin_T, limit_openmp_threads
 from ..fusion.map_io import load_dense_map, save_dense_map
 from ..fusion.mesh import default_K, mesh_from_map, write_mesh
 from ..geometry import relative_motion
@@ -105,6 +108,8 @@ class FusionNode:
         self.kf_stamps = np.zeros(0)
         self.kf_poses = {}
         self.views = []                      # camera poses for mesh export (subsampled)
+        self.camera = None                   # the latest integrated cloud's camera centre in map
+        self.grid_extent = GridExtent(cfg.grid_resolution, cfg.grid_extent_step, cfg.grid_margin)
         self.n_integrated = 0
         self.n_received = 0                  # clouds that reached integrate() (the rest: queue drops)
         self.rate_window = []                # wall times of recent integrations
@@ -152,6 +157,8 @@ class FusionNode:
                 remove_stale_temporaries(f)
         self.pub_points = rospy.Publisher("mdr/map/points", PointCloud2, queue_size=1, latch=True)
         self.pub_grid = rospy.Publisher("mdr/map/grid", OccupancyGrid, queue_size=1, latch=True)
+        self.pub_nav_grid = rospy.Publisher("mdr/map/nav_grid", OccupancyGrid, queue_size=1,
+                                            latch=True) if cfg.publish_nav_grid else None
         self.tf_buffer = tf2_ros.Buffer(cache_time=rospy.Duration(60.0))
         self.tf_listener = transform_listener(self.tf_buffer, self.cfg.max_future_stamp, self.warn,
                                               "fusion_node")
@@ -325,6 +332,7 @@ class FusionNode:
         self.last_proc = now - t0
         self.last_latency = (rospy.Time.now() - msg.header.stamp).to_sec()
         self.rate_window = [t for t in self.rate_window if now - t < 10.0] + [now]
+        self.camera = T[:3, 3].copy()
         self._remember_view(T)
 
     def _anchor_for(self, stamp):
@@ -388,7 +396,9 @@ class FusionNode:
         with self.lock:  # only the copy holds the lock; integration goes on meanwhile
             c = self.map.to_cloud(min(map_min_confidence(self.products_params)))
         stamp = rospy.Time.now()
-        pts, grid = map_products(c, self.products_params)   # cloud and grid of one snapshot
+        around = None if self.camera is None else self.camera[None]
+        pts, grid = map_products(c, self.products_params,   # cloud and grid of one snapshot
+                                 self.grid_extent, around)
         self.pub_points.publish(arrays_to_pointcloud2(
             {"intensity": np.asarray(pts["intensity"], np.float32),
              "confidence": np.asarray(pts["confidence"], np.float32)},
@@ -404,6 +414,9 @@ class FusionNode:
             msg.info.origin = matrix_to_pose(grid_origin_T(origin, cfg.grid_up_axis, cfg.grid_z_min))
             msg.data = data.reshape(-1).tolist()
             self.pub_grid.publish(msg)
+            if self.pub_nav_grid is not None:
+                msg.data = np.maximum(data, 0).reshape(-1).tolist()
+                self.pub_nav_grid.publish(msg)
 
     def diagnostics(self, stat):
         now = time.monotonic()
