@@ -370,6 +370,46 @@ def test_lost_frame_recovered_by_coasting_on_the_motion_model(sequence):
     keep.__exit__(None, None, None)
 
 
+def test_wheel_odometry_carries_tracking_through_a_long_blank_turn(sequence):
+    """A robot's odometry (Frame.T_odom_cam, 2 % long) gives the motion between frames: after
+    0.6 s of blank frames in a turn (beyond lost_coast_s, 38 degrees turned) the next real frame
+    is tracked OK from the odometry's prediction, where the constant-velocity model only leaves
+    relocalization (which needs an already mapped view)."""
+    poses, images = sequence
+    from mdr_slam.pose import tracking
+    z = np.zeros_like(images[0][0])
+
+    def odom(i):   # the camera in the odometry frame, translations read 2 % long
+        T = inv_T(poses[0]) @ poses[i]
+        T[:3, 3] *= 1.02
+        return T
+
+    states = {}
+    for use_odom in (False, True):
+        with tuned(tracking, RESET_IF_LOST_BELOW_KFS=0):
+            s = System(CAM, threads=False)
+
+            def track(i, left, right):
+                f = s.make_frame(0.05 * i, left, right)
+                if use_odom:
+                    f.T_odom_cam = odom(i)
+                return s.track(f.stamp, frame=f)
+            for i in range(12):
+                assert track(i, *images[i]).state == "OK"
+            for i in range(12, 23):
+                assert track(i, z, z).state == "LOST"
+            r = track(23, *images[23])
+            states[use_odom] = r.state
+            if use_odom:
+                T_true = inv_T(poses[0]) @ poses[23]
+                assert r.state == "OK", r.state
+                assert np.linalg.norm(r.T_map_cam[:3, 3] - T_true[:3, 3]) < 0.03
+                for i in range(24, 28):   # and goes on
+                    assert track(i, *images[i]).state == "OK"
+            s.shutdown()
+    assert states[False] != "OK", states
+
+
 def test_frames_made_ahead_track_exactly_like_frames_made_in_track(sequence):
     """The pose node's pipeline (pipeline_frames): make_frame reads no map, so frames made before
     any of them is tracked give the same poses as track(stamp, left, right) making each itself."""

@@ -285,7 +285,7 @@ class PoseRelay:
         self._path_last = T.copy()
         return True
 
-    def _odom_base_at(self, stamp):
+    def _odom_base_at(self, stamp, warn: bool = True):
         """The robot's T_odom_base at ``stamp`` (None, with a warning, when tf has none). Waits
         up to ODOM_LOOKUP_TIMEOUT s of wall time: a sim clock that stops (the bag ends) must not
         hold the tracking thread."""
@@ -296,11 +296,21 @@ class PoseRelay:
                     self.p.odom_frame, self.p.base_frame, stamp))
             except (tf2_ros.TransformException, rospy.ROSTimeMovedBackwardsException) as e:
                 if time.monotonic() > deadline or rospy.is_shutdown():
+                    if not warn:
+                        return None
                     self.warn("odomtf", "pose_node: no %s <- %s at %.3f (%s); map -> odom kept"
                               % (self.p.odom_frame, self.p.base_frame, stamp.to_sec(),
                                  str(e).splitlines()[0] if str(e) else type(e).__name__))
                     return None
             time.sleep(0.005)
+
+    def odom_camera_at(self, stamp):
+        """T_odom_cam at ``stamp`` from the robot's wheel odometry (the tracker's motion between
+        frames), or None: no wheel odometry, camera not resolved yet, or tf has none there."""
+        if not self.wheel_odom or self.T_base_cam is None:
+            return None
+        T = self._odom_base_at(stamp, warn=False)
+        return None if T is None else T @ self.T_base_cam
 
     def _resend_map_odom(self, _event=None) -> None:
         """Wheel odometry: the last map -> odom again, future-dated by MAP_ODOM_AHEAD (as amcl
@@ -655,6 +665,7 @@ class OrbNode(PoseMapServices):
         except Exception as e:   # never die on input: log, drop this frame
             self.warn("track", "tracking failed on frame %.3f: %r" % (t, e), level="err")
             return
+        frame.T_odom_cam = self.relay.odom_camera_at(stamp)   # wheel odometry: the motion model
         if self.frames is None:
             self.track(stamp, system, frame)
         elif self.frames.put((stamp, system, frame)):

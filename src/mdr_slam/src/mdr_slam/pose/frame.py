@@ -325,6 +325,9 @@ class Frame:
         self.mp_ids = -np.ones(self.N, dtype=np.int64)     # matched MapPoint id per keypoint
         self.outlier = np.zeros(self.N, dtype=bool)
         self.T_cw: Optional[np.ndarray] = None
+        # the camera in the robot's odometry frame at this stamp (wheel odometry), when known:
+        # the motion between two frames then comes from it instead of a constant velocity
+        self.T_odom_cam: Optional[np.ndarray] = None
         self.ref_kf = None
         self._grid = None
         self.build_ms = self.build_cpu_ms = 0.0   # wall and CPU time of making it (System.make_frame)

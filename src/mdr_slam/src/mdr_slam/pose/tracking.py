@@ -52,7 +52,9 @@ LOW_TEXTURE_POINTS = 150       # frames needing the FAST fallback or with fewer 
                                # low-texture ...
 MIN_INLIERS_LOW_TEXTURE = 15   # ... and are tracked OK with this many inliers
 LOST_COAST_S = 0.5             # LOST: motion-model / wide / frame-to-frame tracking from the last tracked
-                               # frame goes on this long before only relocalization (0: ORB-SLAM2)
+                               # frame goes on this long before only relocalization (0: ORB-SLAM2) ...
+ODOMETRY_COAST_S = 10.0        # ... and this long when the robot's odometry gives the motion (a blank
+                               # wall through a turn in place: odometry drifts ~1-2 % over it)
 MOTION_PRIOR_ACC = 4.0         # pose-only optimization pulled toward the constant-velocity prediction with
 MOTION_PRIOR_ANG_ACC = 120.0   # sigmas acc * dt^2 (m/s^2) and ang_acc * dt^2 (deg/s^2) (0: off, ORB-SLAM2)
 SHADING_MAX_SPREAD = 0.3       # inliers spanning less of the image width: the last frame's shading joins
@@ -150,11 +152,12 @@ class Tracking:
                 if ok:
                     ok = self.track_local_map(frame)
             frame.prior = None
-            if (self.state in (OK, RELOCALIZED) or coasting) and self.velocity is not None and \
+            moving = self.has_motion(frame)
+            if (self.state in (OK, RELOCALIZED) or coasting) and moving and \
                     frame.id > self.last_reloc_frame_id + 1:
                 frame.prior = self.motion_prior(frame)
             if not ok and (self.state in (OK, RELOCALIZED) or coasting):
-                if self.velocity is not None and frame.id > self.last_reloc_frame_id + 1:
+                if moving and frame.id > self.last_reloc_frame_id + 1:
                     ok = self.track_with_motion_model(frame)
                 if not ok and FLOW_TRACKING:
                     ok = self.track_last_frame_flow(frame)
@@ -163,7 +166,7 @@ class Tracking:
                 frame.ref_kf = self.ref_kf
                 if ok:
                     ok = self.track_local_map(frame)
-                if not ok and self.velocity is not None:
+                if not ok and moving:
                     ok = self.track_local_map_wide(frame) and self.track_local_map(frame)
                 if not ok:
                     ok = self.track_last_frame_pnp(frame) and self.track_local_map(frame)
@@ -253,10 +256,29 @@ class Tracking:
                 kf = kf.parent
             last.set_pose(T_c_ref @ kf.T_cw)
 
+    def odometry_motion(self, frame: Frame) -> Optional[np.ndarray]:
+        """The motion (T_cw(frame) T_cw(last frame)^-1) the robot's odometry measured between
+        the last tracked frame and ``frame``, or None when either lacks ``T_odom_cam``. Wheel
+        odometry is good to a few percent over a frame gap, also in the turns in place and over
+        the gaps (LOST, frames dropped while busy) where a constant velocity is wrong (as
+        ORB-SLAM2 ports for wheeled robots and RTAB-Map's odometry guess use it)."""
+        last = self.last_frame
+        if last is None or last.T_odom_cam is None or frame.T_odom_cam is None:
+            return None
+        return normalize_pose(inv_T(frame.T_odom_cam) @ last.T_odom_cam)
+
+    def has_motion(self, frame: Frame) -> bool:
+        """A motion to predict ``frame``'s pose from the last frame's: odometry or velocity."""
+        return self.velocity is not None or self.odometry_motion(frame) is not None
+
     def predicted_velocity(self, frame: Frame) -> np.ndarray:
-        """The constant-velocity motion from the last frame to ``frame``: the last measured
+        """The motion from the last frame to ``frame``: the robot's odometry when it has it
+        (:meth:`odometry_motion`), else the constant-velocity model: the last measured
         velocity scaled to the real stamp difference (frames dropped while the node was busy, or
         an irregular stream); unchanged when the gap is within 5 % of the measured one."""
+        odo = self.odometry_motion(frame)
+        if odo is not None:
+            return odo
         V = self.velocity
         dt = frame.stamp - self.last_frame.stamp
         if self.velocity_dt <= 0 or not dt > 0:
@@ -298,8 +320,11 @@ class Tracking:
         (a live node that had to skip frames) is then recovered where relocalization, which needs
         an already mapped view, cannot."""
         last = self.last_frame
-        return (self.velocity is not None and last is not None and last.T_cw is not None and
-                0.0 < frame.stamp - last.stamp <= float(LOST_COAST_S))
+        if last is None or last.T_cw is None or not frame.stamp > last.stamp:
+            return False
+        if self.odometry_motion(frame) is not None:
+            return frame.stamp - last.stamp <= float(ODOMETRY_COAST_S)
+        return self.velocity is not None and frame.stamp - last.stamp <= float(LOST_COAST_S)
 
     def low_texture(self, frame: Frame) -> bool:
         """Few stereo keypoints (blank walls): thresholds written for 1000+ features relax."""
@@ -552,7 +577,7 @@ class Tracking:
         sel = sel[~self.map.mp_bad[last.mp_ids[sel]]]
         if len(sel) < 10:
             return False
-        T_pred = (self.predicted_velocity(frame) if self.velocity is not None else np.eye(4)) @ \
+        T_pred = (self.predicted_velocity(frame) if self.has_motion(frame) else np.eye(4)) @ \
             last.T_cw
         sel, ids, Pw, p1 = self._flow_from_last(frame, sel, T_pred)
         if len(sel) < 10:
