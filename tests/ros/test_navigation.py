@@ -110,7 +110,9 @@ def test_costmap_parameters_match_the_fusion_grid():
     glob = yaml.safe_load(open(os.path.join(nav, "global_costmap_params.yaml")))["global_costmap"]
     local = yaml.safe_load(open(os.path.join(nav, "local_costmap_params.yaml")))["local_costmap"]
     mb = yaml.safe_load(open(os.path.join(nav, "move_base.yaml")))
-    assert common["static_layer"]["map_topic"] == "mdr/map/grid"   # relative: follows a namespace
+    # relative: follows a namespace; the grid with unknown cells free, which the fusion node
+    # publishes by default
+    assert common["static_layer"]["map_topic"] == "mdr/map/nav_grid" and fusion["publish_nav_grid"]
     assert glob["global_frame"] == fusion["map_frame"] and glob["robot_base_frame"] == "base_link"
     assert glob["resolution"] == fusion["grid_resolution"]
     assert local["global_frame"] == "odom" and local["rolling_window"]
@@ -131,7 +133,10 @@ def test_costmap_parameters_match_the_fusion_grid():
         assert v / fusion["display_voxel"] == pytest.approx(round(v / fusion["display_voxel"]))
     names = [p["name"] for p in glob["plugins"]]
     assert names == ["static_layer", "obstacle_layer", "inflation_layer"]
-    assert mb["base_global_planner"] and mb["NavfnROS"]["allow_unknown"]
+    # the costmap's own unknown cells are only those of a global costmap just resized (blank):
+    # the planner must not cross them (tests/ros/test_move_base.py)
+    assert glob["track_unknown_space"] and not mb["GlobalPlanner"]["allow_unknown"]
+    assert mb["base_global_planner"] == "global_planner/GlobalPlanner"
 
 
 def test_navigation_launch_parses_with_and_without_move_base():
