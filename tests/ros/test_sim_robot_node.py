@@ -97,7 +97,7 @@ def test_sim_robot_streams_like_a_driver_and_follows_cmd_vel(rospy_client, start
     rec = Recorder(rospy)
     pub = rospy.Publisher("/cmd_vel", Twist, queue_size=10)
     # the office's middle, facing +x: 3.7 m of floor ahead
-    node = _launch(start_process, "start_pose:=4 3 0")
+    node = _launch(start_process, "start_pose:=4 3 0", "scale:=0.5")
     try:
         assert wait_for(lambda: all(rec.n(k) >= 3 for k in
                                     ("left", "right", "left_info", "right_info", "odom", "gt",
@@ -209,7 +209,7 @@ def test_a_drive_into_a_wall_is_counted_and_the_base_stops(rospy_client, start_p
     rec = Recorder(rospy, ns="/robot1")
     pub = rospy.Publisher("/robot1/cmd_vel", Twist, queue_size=10)
     # 1 m before the office's east wall (x = 8), facing it; in a namespace, as a fleet would be
-    node = start_process(["roslaunch", "mdr_slam", "sim_robot.launch", "start_pose:=7 2.5 0",
+    node = start_process(["roslaunch", "mdr_slam", "sim_robot.launch", "start_pose:=7 2.5 0", "scale:=0.5",
                           "__ns:=robot1"], "sim_robot")
     try:
         assert wait_for(lambda: rec.n("collisions") >= 1 and rec.n("gt_odom") >= 3 and

@@ -55,7 +55,7 @@ class RobotConfig(Config):
     contrast: float = 4.0              # texture amplitude of the low-texture surfaces (grey levels)
     specular: bool = True              # the scene's glossy band
     noise: float = 2.0                 # image noise sigma (grey levels)
-    scale: float = 0.5                 # camera resolution as a fraction of 752x480
+    scale: float = 1.0                 # camera resolution as a fraction of 752x480
     rate: float = 10.0                 # Hz of stereo frames; sim time advances 1/rate per frame
     real_time_factor: float = 1.0      # cap: sim s per wall s (<= 1; 0: as fast as it renders)
     physics_rate: float = 100.0        # Hz of kinematics and collision sub-steps
