@@ -53,6 +53,9 @@ LOW_TEXTURE_POINTS = 150       # frames needing the FAST fallback or with fewer 
 MIN_INLIERS_LOW_TEXTURE = 15   # ... and are tracked OK with this many inliers
 LOST_COAST_S = 0.5             # LOST: motion-model / wide / frame-to-frame tracking from the last tracked
                                # frame goes on this long before only relocalization (0: ORB-SLAM2) ...
+ODOMETRY_SIGMA_M = 0.005       # the motion prior from wheel odometry: sigma = this + REL x the motion's
+ODOMETRY_SIGMA_DEG = 0.3       # translation (m) / rotation (rad), per frame gap: a wheeled base is
+ODOMETRY_SIGMA_REL = 0.05      # good to a few percent (slip, wheel radius), also in turns in place
 ODOMETRY_COAST_S = 10.0        # ... and this long when the robot's odometry gives the motion (a blank
                                # wall through a turn in place: odometry drifts ~1-2 % over it)
 MOTION_PRIOR_ACC = 4.0         # pose-only optimization pulled toward the constant-velocity prediction with
@@ -310,6 +313,11 @@ class Tracking:
             dt = self.velocity_dt if self.velocity_dt > 0 else 0.05
         self._update_last_frame()
         st, sr = acc * dt * dt, np.radians(ang) * dt * dt
+        odo = self.odometry_motion(frame)
+        if odo is not None:   # wheel odometry: its error grows with the motion, not with time
+            st = ODOMETRY_SIGMA_M + ODOMETRY_SIGMA_REL * float(np.linalg.norm(odo[:3, 3]))
+            sr = np.radians(ODOMETRY_SIGMA_DEG) + ODOMETRY_SIGMA_REL * float(
+                np.linalg.norm(Rotation.from_matrix(odo[:3, :3]).as_rotvec()))
         info = np.array([1.0 / st ** 2] * 3 + [1.0 / sr ** 2] * 3)
         return normalize_pose(self.predicted_velocity(frame) @ last.T_cw), info
 
