@@ -88,6 +88,21 @@ class _Watch:
                      rospy.Subscriber("mdr/map/grid", OccupancyGrid, self.on_grid, queue_size=2,
                                       buff_size=1 << 24)]
         self.subs += [rospy.Subscriber(t, Path, self.on_plan, queue_size=20) for t in PLAN_TOPICS]
+        from diagnostic_msgs.msg import DiagnosticArray
+        from mdr_slam_msgs.msg import TrackingState
+        self.diag: Dict[str, dict] = {}       # status name -> its last key/values
+        self.states: List[tuple] = []         # (sim t, tracking state)
+        self.subs += [rospy.Subscriber("/diagnostics", DiagnosticArray, self.on_diag, queue_size=20),
+                      rospy.Subscriber("mdr/tracking_state", TrackingState, self.on_state,
+                                       queue_size=50)]
+
+    def on_diag(self, m):
+        for st in m.status:
+            self.diag[st.name] = {kv.key: kv.value for kv in st.values}
+
+    def on_state(self, m):
+        with self.lock:
+            self.states.append((m.header.stamp.to_sec(), int(m.state)))
 
     def on_gt(self, m):
         T = self._pose_to_matrix(m.pose.pose)
@@ -283,7 +298,8 @@ def run_scene(args, scene_name: str, out_dir: str) -> dict:
         logs = []
         for name, cmd in (
                 ("robot", ["roslaunch", "mdr_slam", "sim_robot.launch", "scene:=" + scene_name,
-                           "seed:=%d" % args.seed, "map_frame:=world"]),
+                           "seed:=%d" % args.seed, "map_frame:=world"]
+                 + list(getattr(args, "robot_arg", None) or [])),
                 ("navigation", ["roslaunch", "mdr_slam", "navigation.launch", "move_base:=true",
                                 "use_sim_time:=true", "respawn:=false",
                                 "session_id:=navigate_%s_%d" % (scene_name, args.seed)]
@@ -330,7 +346,7 @@ def run_scene(args, scene_name: str, out_dir: str) -> dict:
         if not client.wait_for_server(rospy.Duration(120.0)):
             result["error"] = "move_base's action server did not come up"
             return result
-        records, all_true = [], []
+        records, all_true, trace = [], [], []   # trace: (t, true x, y, estimated x, y)
         for k, gl in enumerate(goals):
             T_goal = T_map_world @ _se2(gl["xy"][0], gl["xy"][1], gl["yaw"])
             T_goal[:3, :3] = _se2(0, 0, _planar(T_goal)[2])[:3, :3]   # level in map
@@ -371,6 +387,8 @@ def run_scene(args, scene_name: str, out_dir: str) -> dict:
                 est_t.append(t)
                 est_xy.append((T_world_map @ T_mb)[:2, 3])
             loc = localization_errors(est_t, est_xy, [t for t, _ in seg], true_xy)
+            gt_by_t = {t: T[:2, 3] for t, T in seg}
+            trace += [(t, *gt_by_t[t], *e) for t, e in zip(est_t, est_xy)]
             end_d = float(np.linalg.norm(true_xy[-1] - gl["xy"])) if len(true_xy) else float("inf")
             reached = state == GoalStatus.SUCCEEDED and end_d <= REACHED_SLACK
             rec = score_goal(gl, reached, t1 - t0, true_xy, tg, radius,
@@ -389,6 +407,13 @@ def run_scene(args, scene_name: str, out_dir: str) -> dict:
                       rec["max_localization_error_m"]), file=sys.stderr, flush=True)
         result["goals"] = records
         result["summary"] = summarise(records, MAX_SPEED)
+        with watch.lock:
+            st = np.array([s for _t, s in watch.states], int)
+            np.savez(os.path.join(out_dir, "trace.npz"), pose=np.array(trace).reshape(-1, 5),
+                     states=np.array(watch.states).reshape(-1, 2))
+        result["tracking_states"] = {name: int(np.sum(st == v)) for name, v in (
+            ("not_initialized", 0), ("ok", 1), ("lost", 2), ("relocalized", 3))}
+        result["diagnostics"] = dict(watch.diag)
         result["resources"] = usage.summary()
         # the final map and grid
         from mdr_slam_msgs.srv import SaveMap
@@ -484,6 +509,8 @@ def run_navigate(args) -> int:
                                "--seed", str(args.seed), "--goals", str(args.goals)]
         for a in args.launch_arg or []:
             cmd += ["--launch-arg", a]
+        for a in getattr(args, "robot_arg", None) or []:
+            cmd += ["--robot-arg", a]
         subprocess.call(cmd)
         try:
             with open(os.path.join(out, name, "scene.json")) as f:

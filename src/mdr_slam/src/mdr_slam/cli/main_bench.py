@@ -92,6 +92,8 @@ def add_parser(sub, name, help_text):
                         "seeded goals per scene (default scenes office,corridor,garage)")
     p.add_argument("--goals", type=int, default=10, help="--navigate: goals per scene")
     p.add_argument("--navigate-scene", default=None, help=argparse.SUPPRESS)
+    p.add_argument("--robot-arg", action="append", default=[], metavar="NAME:=VALUE",
+                   help="--navigate: an argument for sim_robot.launch (e.g. scale:=1.0)")
     p.add_argument("--compare", action="store_true",
                    help="compare the built-in tracker (mdr) with ORB-SLAM3 (orbslam3): live and "
                         "offline, --runs times each")
