@@ -40,7 +40,8 @@ def test_extent_grows_in_steps_and_keeps_the_content():
         assert (rest == -1).all()
         # on the lattice of the step, the camera 2 m or more inside
         assert np.allclose(np.array(o) / 5.0, np.round(np.array(o) / 5.0))
-        assert np.allclose(np.array(out.shape) * RES / 5.0, np.round(np.array(out.shape) * RES / 5.0))
+        size = np.array(out.shape) * RES / 5.0
+        assert np.allclose(size, np.round(size))
         lo, hi = np.array(o), np.array(o) + RES * np.array(out.shape[::-1])
         assert (cam[:2] - 2.0 >= lo - 1e-9).all() and (cam[:2] + 2.0 <= hi + 1e-9).all()
     changes = sum(a != b for a, b in zip(boxes, boxes[1:]))

@@ -169,7 +169,8 @@ class FakeRobot:
         self.rate, self.cloud_period = rate, 1.0 / cloud_rate
         self.tfb = tf2_ros.TransformBroadcaster()
         self.pub_odom = rospy.Publisher("/mdr/odom", Odometry, queue_size=5)
-        self.pub_cloud = rospy.Publisher("/mdr/depth/points", PointCloud2, queue_size=2) if room else None
+        self.pub_cloud = (rospy.Publisher("/mdr/depth/points", PointCloud2, queue_size=2)
+                          if room else None)
         if room is not None:
             from geometry_msgs.msg import TransformStamped
             self.static = tf2_ros.StaticTransformBroadcaster()
@@ -222,13 +223,15 @@ class FakeRobot:
                 t.header.stamp = stamp
                 t.header.frame_id, t.child_frame_id = parent, child
                 t.transform.translation.x, t.transform.translation.y = tx, ty
-                t.transform.rotation.z, t.transform.rotation.w = math.sin(yaw / 2), math.cos(yaw / 2)
+                t.transform.rotation.z = math.sin(yaw / 2)
+                t.transform.rotation.w = math.cos(yaw / 2)
                 tfs.append(t)
             self.tfb.sendTransform(tfs)
             o = Odometry()
             o.header.stamp, o.header.frame_id, o.child_frame_id = stamp, "odom", "base_link"
             o.pose.pose.position.x, o.pose.pose.position.y = x, y
-            o.pose.pose.orientation.z, o.pose.pose.orientation.w = math.sin(th / 2), math.cos(th / 2)
+            o.pose.pose.orientation.z = math.sin(th / 2)
+            o.pose.pose.orientation.w = math.cos(th / 2)
             o.twist.twist.linear.x, o.twist.twist.linear.y, o.twist.twist.angular.z = v
             self.pub_odom.publish(o)
             if self.room is not None and now >= next_cloud:
@@ -262,8 +265,10 @@ class FakeRobot:
         self.thread.join(5)
         self.sub.unregister()
         self.pub_odom.unregister()
+        self.tfb.pub_tf.unregister()
         if self.pub_cloud is not None:
             self.pub_cloud.unregister()
+            self.static.pub_tf.unregister()   # no latched camera frame left for later tests
 
 
 # ---------------------------------------------------------------------- move_base
@@ -499,7 +504,8 @@ def test_no_plan_through_a_wall_right_after_a_costmap_resize(rospy_client, start
     resized = log_lines(launch, "Resizing costmap")
     print("8 grids of another extent (%d costmap resizes): right after each, %d plans through "
           "walls (grid, poses, poses in occupied cells) %s, %d no plan; 2 s later (poses, in "
-          "occupied cells, northmost y) %s" % (len(resized), len(crossing), crossing, empty, around))
+          "occupied cells, northmost y) %s"
+          % (len(resized), len(crossing), crossing, empty, around))
     assert len(resized) >= 8
     assert not crossing
     # the updated costmap has a way round the wall (its end at y = 4.5) through unknown cells
@@ -562,7 +568,7 @@ def test_recovery_clears_a_stale_obstacle(rospy_client, start_process, grid_publ
     assert end[0] > 6.0
 
 
-# ---------------------------------------------------------------------- closed loop on the fusion grid
+# ---------------------------------------------------------------------- closed loop, fusion grid
 # a 10 x 7 m room split by a wall with a 2.5 m opening at its far end; the robot starts facing
 # the wall and is sent behind it
 EXPLORE = [(0, 0, 10, 0), (10, 0, 10, 7), (10, 7, 0, 7), (0, 7, 0, 0), (5, 0, 5, 4.5)]
@@ -646,6 +652,7 @@ def _grid_before(grids, t):
     return best
 
 
+@pytest.mark.slow
 def test_growing_grid_no_plan_crosses_an_occupied_cell(explore_run):
     """While the fusion node's grid grows, no global plan crosses a cell the grid has marked
     occupied for long enough for the global costmap to have it (in the grid that arrived 1.5 s
@@ -686,6 +693,7 @@ def test_growing_grid_no_plan_crosses_an_occupied_cell(explore_run):
     assert math.hypot(end[0] - GOAL[0], end[1] - GOAL[1]) < 0.3
 
 
+@pytest.mark.slow
 def test_robot_stays_inside_the_global_costmap(explore_run):
     """Every grid the fusion node publishes holds the robot with room for its radius (the global
     costmap is the grid's extent: a robot off it cannot plan, and a depth sensor off it clears
@@ -709,6 +717,7 @@ def test_robot_stays_inside_the_global_costmap(explore_run):
 
 
 # ---------------------------------------------------------------------- live: tf age
+@pytest.mark.slow
 def test_live_tf_is_fresh_enough_for_move_base(rospy_client, start_process, sample_bag):
     """The whole stack on the sample bag (tracking, depth, fusion, move_base; no wheel odometry,
     so tf odom -> base_link comes from the tracker at the image stamps): the transform
@@ -721,15 +730,16 @@ def test_live_tf_is_fresh_enough_for_move_base(rospy_client, start_process, samp
     tol = _nav_yaml("costmap_common_params.yaml")["transform_tolerance"]
     buf = tf2_ros.Buffer(cache_time=rospy.Duration(10.0))
     listener = tf2_ros.TransformListener(buf)
-    launch = start_process(["roslaunch", NAV_LAUNCH, "bag:=" + os.path.join(sample_bag, "sequence.bag"),
-                            "move_base:=true", "respawn:=false", "delay:=3"], "live")
+    launch = start_process(["roslaunch", NAV_LAUNCH, "move_base:=true", "respawn:=false",
+                            "delay:=3", "bag:=" + os.path.join(sample_bag, "sequence.bag")], "live")
     ages, usage, procs = [], [], []
     try:
         # the launch sets /use_sim_time: this process keeps wall time, so ages are measured
         # against the bag's /clock as move_base sees it
         from rosgraph_msgs.msg import Clock
         clock = []
-        sub = rospy.Subscriber("/clock", Clock, lambda m: clock.append(m.clock.to_sec()), queue_size=5)
+        sub = rospy.Subscriber("/clock", Clock, lambda m: clock.append(m.clock.to_sec()),
+                               queue_size=5)
         assert wait_for(lambda: clock, 60, 0.2), launch.output()[-3000:]
         t_end = time.time() + 60
         last, moved, t_usage = None, time.time(), 0.0
