@@ -51,10 +51,11 @@ AUTOSAVE_PERIOD = 2.0
 # The sample has no base -> camera transform. Given as a launch argument, the pose node's first
 # frame waits 0.2 s for tf instead of 1 s (at 0.5x, 11 of the 120 played frames of test 1 went by
 # meanwhile: its 90 % bound would measure that wait, not the map).
-# Mapping (test 2): identity, as mdr run takes it, so the offline run's frame is the live one's.
-BASE_TO_CAMERA = "0 0 0 0 0 0 1"
+# Mapping (test 2): mdr run's default without one (a level camera at base_link looking along x,
+# geometry.T_BASE_OPTICAL), so the offline run's frame is the live one's.
+BASE_TO_CAMERA = "0 0 0 -0.5 0.5 -0.5 0.5"
 # Localization (test 1): a robot's camera (0.5 m up, looking along base x). A new map would be
-# this pose at the first frame; the loaded map's frame comes from its file (mdr run: identity)
+# this pose at the first frame; the loaded map's frame comes from its file (mdr run's default)
 ROBOT_BASE_TO_CAMERA = "0.2 0 0.5 -0.5 0.5 -0.5 0.5"
 CONFIG = os.path.join(ROOT, "src", "mdr_slam", "config")
 NOTHING_MAPPED = re.compile("nothing (mapped|tracked) yet")   # the pose node without a map

@@ -379,7 +379,9 @@ def test_dwa_sends_no_lateral_velocity(rospy_client, start_process, grid_publish
     try:
         client = goal_client(rospy)
         client.send_goal(goal(4.5, 1.0, -math.pi / 2))
-        client.wait_for_result(rospy.Duration(90))
+        # ~45 s on a quiet machine; under a loaded suite DWA runs late and slower (CI: still
+        # under way at 90 s, at the wall's end)
+        client.wait_for_result(rospy.Duration(240))
         state = client.get_state()
         end = robot.xy_yaw()
     finally:

@@ -665,7 +665,8 @@ class OrbNode(PoseMapServices):
         except Exception as e:   # never die on input: log, drop this frame
             self.warn("track", "tracking failed on frame %.3f: %r" % (t, e), level="err")
             return
-        frame.T_odom_cam = self.relay.odom_camera_at(stamp)   # wheel odometry: the motion model
+        if hasattr(frame, "T_odom_cam"):   # wheel odometry: the motion model (not ORB-SLAM3's)
+            frame.T_odom_cam = self.relay.odom_camera_at(stamp)
         if self.frames is None:
             self.track(stamp, system, frame)
         elif self.frames.put((stamp, system, frame)):
