@@ -410,6 +410,31 @@ def test_wheel_odometry_carries_tracking_through_a_long_blank_turn(sequence):
     assert states[False] != "OK", states
 
 
+def test_a_relocalization_the_odometry_contradicts_is_refused(sequence):
+    """LOST, then a view of an already mapped place: relocalized where the robot's odometry puts
+    the camera near it, refused (still LOST) where the odometry says the robot is 2 m away."""
+    poses, images = sequence
+
+    def odom(i, shift=0.0):
+        T = inv_T(poses[0]) @ poses[i]
+        T[0, 3] += shift
+        return T
+    got = {}
+    for shift in (0.0, 2.0):
+        s = System(CAM, threads=False)
+        for i in range(12):
+            f = s.make_frame(0.05 * i, *images[i])
+            f.T_odom_cam = odom(i)
+            assert s.track(f.stamp, frame=f).state == "OK"
+        s.tracking.state = "LOST"     # as if the camera had been covered
+        s.tracking.velocity = None
+        f = s.make_frame(0.05 * 12 + 20.0, *images[8])   # beyond the odometry coast: relocalize
+        f.T_odom_cam = odom(8, shift)
+        got[shift] = (s.track(f.stamp, frame=f).state, s.tracking.n_reloc_refused)
+        s.shutdown()
+    assert got == {0.0: ("RELOCALIZED", 0), 2.0: ("LOST", 1)}, got
+
+
 def test_frames_made_ahead_track_exactly_like_frames_made_in_track(sequence):
     """The pose node's pipeline (pipeline_frames): make_frame reads no map, so frames made before
     any of them is tracked give the same poses as track(stamp, left, right) making each itself."""
