@@ -258,3 +258,37 @@ def test_reset_keeps_the_map_and_last_holds_one_session(rospy_client, start_proc
     r = load("mixed", False)
     assert not r.success and "different sessions" in r.message and r.n_points == n_big, r
     assert node2.proc.poll() is None, node2.output()
+
+
+def test_the_planners_goal_is_kept_inside_the_grid(rospy_client, start_process, tmp_path):
+    """A move_base goal in space not mapped yet (move_base/current_goal) widens the grid's extent
+    to hold it with grid_margin: the static layer's costmap then contains it and the goal is
+    planned through unknown space instead of refused as off the costmap."""
+    rospy = rospy_client
+    from nav_msgs.msg import OccupancyGrid
+    from geometry_msgs.msg import PoseStamped
+    from sensor_msgs.msg import PointCloud2
+    name = "fusion_goal"
+    node = _node(start_process, tmp_path, name, ["_pose_source:=topic", "_sync_tolerance:=0.02",
+                                                   "/mdr/pose:=/%s/pose" % name,
+                                                   "move_base/current_goal:=/%s/goal" % name])
+    grids = []
+    rospy.Subscriber("/%s/grid" % name, OccupancyGrid, grids.append)
+    pub = rospy.Publisher("/%s/cloud" % name, PointCloud2, queue_size=10)
+    pub_pose = rospy.Publisher("/%s/pose" % name, PoseStamped, queue_size=10)
+    pub_goal = rospy.Publisher("/%s/goal" % name, PoseStamped, queue_size=1, latch=True)
+    assert wait_for(lambda: pub.get_num_connections() > 0 and pub_pose.get_num_connections() > 0,
+                    30), node.output()
+    st = rospy.Time.now()
+    pub_pose.publish(cv.matrix_to_pose_stamped(np.eye(4), st, "map"))
+    pub.publish(cv.arrays_to_pointcloud2({}, st, "cam", xyz=_wall(seed=2)))
+    assert wait_for(lambda: grids and grids[-1].info.width > 0, 15), node.output()
+
+    def x_range(g):
+        return g.info.origin.position.x, g.info.origin.position.x + g.info.width * g.info.resolution
+    before = x_range(grids[-1])
+    assert before[1] < 12.0, before
+    pub_goal.publish(cv.matrix_to_pose_stamped(make_T(np.eye(3), [20.0, 0.0, 0.0]), st, "map"))
+    assert wait_for(lambda: x_range(grids[-1])[1] >= 22.0 - 1e-6, 15), (before, x_range(grids[-1]))
+    assert x_range(grids[-1])[0] == before[0]
+    assert node.proc.poll() is None

@@ -112,6 +112,7 @@ class FusionNodeConfig(Config):
                                     # costmap resizes, each blank until its next update); 0: bounding box
     grid_margin: float = 2.0        # m kept around the camera inside the grid (move_base's robot and
                                     # depth sensor must lie in the global costmap)
+    goal_topic: str = "move_base/current_goal"   # PoseStamped goals kept inside the grid too; "": none
     # files (writes are atomic: temporary file + rename)
     map_dir: str = ""               # the services' paths resolve inside it; "": $ROS_HOME/mdr_maps
     map_path: str = "last"          # map folder (in map_dir; or a .ply/.pcd file) of autosave and ~save_map

@@ -109,6 +109,7 @@ class FusionNode:
         self.kf_poses = {}
         self.views = []                      # camera poses for mesh export (subsampled)
         self.camera = None                   # the latest integrated cloud's camera centre in map
+        self.goal = None                     # the planner's current goal in map (goal_topic)
         self.grid_extent = GridExtent(cfg.grid_resolution, cfg.grid_extent_step, cfg.grid_margin)
         self.n_integrated = 0
         self.n_received = 0                  # clouds that reached integrate() (the rest: queue drops)
@@ -177,6 +178,8 @@ class FusionNode:
                                               queue_size=cfg.cloud_queue, buff_size=big)
         self.sub_kf = rospy.Subscriber(cfg.keyframes_topic, KeyFrameArray, self.on_keyframes,
                                        queue_size=20)
+        if cfg.goal_topic:
+            self.sub_goal = rospy.Subscriber(cfg.goal_topic, PoseStamped, self.on_goal, queue_size=5)
         if cfg.tracking_state_topic:
             self.sub_state = rospy.Subscriber(cfg.tracking_state_topic, TrackingState,
                                               self.on_state, queue_size=50)
@@ -204,6 +207,21 @@ class FusionNode:
             rospy.logwarn("fusion_node: diagnostic_updater missing; no diagnostics")
 
     # ------------------------------------------------------------------ input
+    def on_goal(self, msg):
+        """The planner's goal: the grid's extent holds it (GridExtent), so a goal in space not
+        mapped yet lies in move_base's global costmap and is planned through unknown space."""
+        try:
+            T = pose_stamped_to_matrix(msg)
+            frame = msg.header.frame_id.lstrip("/")
+            if frame and frame != self.cfg.map_frame:
+                T = transform_stamped_to_matrix(self.tf_buffer.lookup_transform(
+                    self.cfg.map_frame, frame, rospy.Time(0), rospy.Duration(0.5))) @ T
+        except (ConversionError, tf2_ros.TransformException) as e:
+            self.warn("goal", "goal skipped: %s" % e)
+            return
+        self.goal = T[:3, 3].copy()
+        self.dirty = True   # the next publish widens the grid (the map itself may be unchanged)
+
     def on_state(self, msg):
         """Tracking states, kept for ~30 s (per frame) so clouds can be checked at their stamp."""
         t = msg.header.stamp.to_sec()
@@ -396,7 +414,8 @@ class FusionNode:
         with self.lock:  # only the copy holds the lock; integration goes on meanwhile
             c = self.map.to_cloud(min(map_min_confidence(self.products_params)))
         stamp = rospy.Time.now()
-        around = None if self.camera is None else self.camera[None]
+        around = [p for p in (self.camera, self.goal) if p is not None]
+        around = np.array(around) if around else None
         pts, grid = map_products(c, self.products_params,   # cloud and grid of one snapshot
                                  self.grid_extent, around)
         self.pub_points.publish(arrays_to_pointcloud2(
