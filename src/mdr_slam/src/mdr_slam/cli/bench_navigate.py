@@ -7,7 +7,7 @@ about half out of sight of the previous one) go to move_base's action server one
 
 Per goal: ``reached`` (move_base SUCCEEDED and the true base within ``REACHED_SLACK`` m of the
 goal), ``time_s`` (sim time), ``path_m`` (true path) against ``shortest_m`` (the true grid, disc
-robot), ``collisions`` (the robot's footprint against the scene), ``min_clearance_m`` (footprint
+robot, from where the robot really was when the goal was sent), ``collisions`` (the robot's footprint against the scene), ``min_clearance_m`` (footprint
 to the true obstacles), ``plans_through_occupied`` (global plans crossing a cell the last grid
 before them marked occupied), ``max_localization_error_m`` (tf ``map -> base_link`` against the
 true base, the map frame fixed to the scene by the pose at the first tracked frame). Then the
@@ -35,6 +35,7 @@ import psutil
 
 from ..eval.navigation import (localization_errors, plan_crosses_occupied, sample_goals,
                                score_goal, summarise, true_grid)
+from ..nav import plan_path
 from .bench_live import _NodeUsage, _free_port
 
 REACHED_SLACK = 0.30      # m: true base to goal for "reached" (goal tolerance + localization)
@@ -354,6 +355,12 @@ def run_scene(args, scene_name: str, out_dir: str) -> dict:
             goal.target_pose.header.frame_id = "map"
             goal.target_pose.header.stamp = rospy.Time.now()
             goal.target_pose.pose = matrix_to_pose(T_goal)
+            with watch.lock:   # where the robot really is (a missed goal leaves it elsewhere)
+                here = watch.gt[-1][1][:2, 3] if watch.gt else np.asarray(gl["from"])
+            plan = plan_path(tg.grid, here, gl["xy"], tg.resolution, tg.origin, radius) \
+                if tg.clearance([here])[0] > radius else None
+            if plan is not None:
+                gl = dict(gl, shortest_m=round(plan.length, 3), **{"from": [float(v) for v in here]})
             limit = max(60.0, 3.0 * gl["shortest_m"] / MAX_SPEED + 30.0)
             coll0 = watch.collisions
             t0 = rospy.Time.now().to_sec()
