@@ -179,6 +179,7 @@ def test_lost_skips_integration_and_resumes_after_relocalization(lost_bag, rosco
     t_start = time.time()
     launch = start_process(["roslaunch", "mdr_slam", "mdr.launch", "bag:=" + lost_bag["bag"],
                             "pose_source:=orb", "rate:=%.2f" % PLAY, "delay:=4.0", "respawn:=false",
+                            "keep_alive:=true",   # the clock (and diagnostics) go on after the bag
                             "fusion_params:=" + os.path.join(d, "fusion.yaml"),
                             "depth_params:=" + os.path.join(d, "depth.yaml")], "launch")
     n = len(lost_bag["kinds"])
@@ -186,7 +187,19 @@ def test_lost_skips_integration_and_resumes_after_relocalization(lost_bag, rosco
     try:
         wait_for(lambda: states and states[-1][0] >= t_last - 1e-3, 30 + 2.0 * n / RATE / PLAY,
                  0.2)
-        time.sleep(3.0)   # the last clouds reach the fusion node
+        # the fusion node works through its queue of clouds (every cloud is queued here, and a
+        # loaded machine integrates more slowly than the bag plays): its counters settle
+        def counts(v):
+            return {k: x for k, x in v.items() if k.startswith(("clouds ", "skipped: "))}
+
+        def settled(quiet=8.0):
+            if not diag or time.time() - diag[-1][0] > 2.0:
+                return False
+            last = counts(diag[-1][1])
+            changed = [w for w, v in diag if counts(v) != last]
+            return time.time() - max(changed, default=diag[0][0]) > quiet
+        assert wait_for(settled, 240, 0.5), "the fusion node never settled: %s" % [
+            (round(w - t_start, 1), counts(v)) for w, v in diag[-3:]]
         rospy.wait_for_service("/fusion_node/save_map", 10)
         r = rospy.ServiceProxy("/fusion_node/save_map", SaveMap)(os.path.join(d, "map.ply"), "")
         assert r.success, r.message

@@ -448,7 +448,13 @@ def test_live_tf_at_cloud_stamps_and_grid_frame(nav_sim, rospy_client, start_pro
               "%.1f %% of them hold a map-cloud point, %.1f %% of band points inside the grid"
               % (len(maps), len(grids), len(depths), g.shape[1], g.shape[0], occ.sum(),
                  100 * hit[occ].mean(), 100 * inside.mean()))
-        assert hit[occ].mean() > 0.95
+        # the occupied cells without a point are closed wall gaps (grid_max_gap): each lies in a
+        # gap between cells that hold points, at most half a gap from one of them
+        from scipy.ndimage import distance_transform_edt
+        to_hit = distance_transform_edt(~hit) * res
+        assert hit[occ].mean() > 0.85
+        assert to_hit[occ].max() <= fusion["grid_max_gap"] / 2 + res, (
+            np.sort(to_hit[occ & ~hit]))
         # ... and every band point of that cloud (what move_base's obstacle layer marks) is in an
         # occupied cell of the grid (the static layer): the two layers agree
         assert inside.all() and (g[rc[:, 0], rc[:, 1]] == 100).all(), (

@@ -240,6 +240,16 @@ class FusionNode:
                     return s
         return None
 
+    def _lost_at(self, stamp: float) -> bool:
+        """True (and a throttled warning) when the pose node was LOST or not initialised at
+        ``stamp``: the cloud's pose is not trustworthy."""
+        tracking = self._tracking_at(stamp)
+        if tracking in (0, 2):  # TrackingState NOT_INITIALIZED, LOST
+            self.warn("lost", "tracking %s at the cloud's stamp %.3f; skipped (no smeared map)" % (
+                "LOST" if tracking == 2 else "not initialised", stamp))
+            return True
+        return False
+
     def on_time_jump(self, stamp: float) -> None:
         """Time went backwards (a looping bag): forget what belongs to the old timeline, keep
         the map."""
@@ -261,7 +271,10 @@ class FusionNode:
         return bool(why)
 
     def on_cloud(self, msg):
-        if self._bad_cloud(msg) or self._from_the_future(msg):
+        # a cloud stamped while LOST is skipped before its pose lookup, which would otherwise wait
+        # up to tf_timeout for the relocalized pose and hold up the clouds queued behind it
+        if self._bad_cloud(msg) or self._from_the_future(msg) or \
+                self._lost_at(msg.header.stamp.to_sec()):
             return
         try:
             ts = self.tf_buffer.lookup_transform(self.cfg.map_frame, msg.header.frame_id,
@@ -324,10 +337,7 @@ class FusionNode:
         if state == "duplicate":
             self.warn(state, "cloud stamp %.3f is equal to the last one; skipped" % stamp)
             return
-        tracking = self._tracking_at(stamp)
-        if tracking in (0, 2):  # TrackingState NOT_INITIALIZED, LOST: no trustworthy pose
-            self.warn("lost", "tracking %s at the cloud's stamp %.3f; skipped (no smeared map)" % (
-                "LOST" if tracking == 2 else "not initialised", stamp))
+        if self._lost_at(stamp):
             return
         inten = arr.get(self.cfg.intensity_field)
         w = arr.get(self.cfg.weight_field)
