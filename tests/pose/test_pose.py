@@ -430,9 +430,35 @@ def test_a_relocalization_the_odometry_contradicts_is_refused(sequence):
         s.tracking.velocity = None
         f = s.make_frame(0.05 * 12 + 20.0, *images[8])   # beyond the odometry coast: relocalize
         f.T_odom_cam = odom(8, shift)
-        got[shift] = (s.track(f.stamp, frame=f).state, s.tracking.n_reloc_refused)
+        got[shift] = (s.track(f.stamp, frame=f).state, s.tracking.n_odom_refused)
         s.shutdown()
     assert got == {0.0: ("RELOCALIZED", 0), 2.0: ("LOST", 1)}, got
+
+
+def test_a_recovery_the_odometry_contradicts_is_refused(sequence):
+    """LOST for a moment (within the odometry coast), then a view the map covers: tracking
+    recovers where the robot's odometry puts the camera near it; where the odometry says the robot
+    is 2 m away, the recovered pose is refused (LOST), as a relocalization would be."""
+    poses, images = sequence
+
+    def odom(i, shift=0.0):
+        T = inv_T(poses[0]) @ poses[i]
+        T[0, 3] += shift
+        return T
+    got = {}
+    for shift in (0.0, 2.0):
+        s = System(CAM, threads=False)
+        for i in range(12):
+            f = s.make_frame(0.05 * i, *images[i])
+            f.T_odom_cam = odom(i)
+            assert s.track(f.stamp, frame=f).state == "OK"
+        s.tracking.state = "LOST"     # as if the last frames had been blank
+        f = s.make_frame(0.05 * 12 + 1.0, *images[8])   # within the coast: the tracking steps run
+        f.T_odom_cam = odom(8, shift)
+        got[shift] = (s.track(f.stamp, frame=f).state, s.tracking.n_odom_refused)
+        s.shutdown()
+    assert got[0.0] == ("OK", 0), got
+    assert got[2.0][0] == "LOST" and got[2.0][1] >= 1, got
 
 
 def test_frames_made_ahead_track_exactly_like_frames_made_in_track(sequence):

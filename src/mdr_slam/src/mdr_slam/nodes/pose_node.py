@@ -204,7 +204,8 @@ class PoseRelay:
         self.last_latency = float("nan")
         self.tracking = {"state": "GROUNDTRUTH" if self.p.source == "groundtruth"
                          else "NOT_INITIALIZED", "time_ms": float("nan"), "lost": 0,
-                         "keyframes": 0, "loop_closures": 0, "visual_odometry": 0, "last_ok": None}
+                         "keyframes": 0, "loop_closures": 0, "visual_odometry": 0, "odom_refused": 0,
+                         "last_ok": None}
         self.sparse_map_points = None      # OrbNode: () -> points of its sparse map, or None
         self._sparse_last = None
         self.diag = diagnostic_updater.Updater()
@@ -219,6 +220,7 @@ class PoseRelay:
         t["state"], t["time_ms"] = str(res.state), float(res.time_ms)
         t["keyframes"], t["loop_closures"] = int(res.n_keyframes), int(res.n_loop_closures)
         t["visual_odometry"] = int(getattr(res, "n_visual_odometry", 0))
+        t["odom_refused"] = int(getattr(res, "n_odom_refused", 0))
         if res.state == "LOST":
             t["lost"] += 1
         elif res.T_map_cam is not None:
@@ -252,6 +254,7 @@ class PoseRelay:
             stat.add("sparse_map_points", str(self._sparse_last))
         # tracked frame to frame where the map did not cover the view (fast turns, mapping behind)
         stat.add("frames_visual_odometry", str(t["visual_odometry"]))
+        stat.add("poses_refused_by_odometry", str(t["odom_refused"]))
         stat.add("last_tracked_s_ago", "%.2f" % ((rospy.Time.now() - t["last_ok"]).to_sec()
                                                   if t["last_ok"] is not None else float("nan")))
         for k, v in sorted(self.warn.counts.items()):

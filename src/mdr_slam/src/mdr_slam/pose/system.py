@@ -202,6 +202,7 @@ class System:
             n_keyframes=len(self.map.good_keyframes()),
             n_loop_closures=self.map.n_loop_closures,
             n_visual_odometry=self.tracking.n_visual_odometry,
+            n_odom_refused=self.tracking.n_odom_refused,
             track_ms=t_track, track_cpu_ms=c_track,
             lock_wait_ms=self.tracking.lock_wait_ms, frame_ms=t_frame)
 

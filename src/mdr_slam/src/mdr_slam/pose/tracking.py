@@ -56,10 +56,10 @@ LOST_COAST_S = 0.5             # LOST: motion-model / wide / frame-to-frame trac
 ODOMETRY_SIGMA_M = 0.005       # the motion prior from wheel odometry: sigma = this + REL x the motion's
 ODOMETRY_SIGMA_DEG = 0.3       # translation (m) / rotation (rad), per frame gap: a wheeled base is
 ODOMETRY_SIGMA_REL = 0.05      # good to a few percent (slip, wheel radius), also in turns in place
-RELOC_ODOM_GATE_M = 0.5       # a relocalization is refused when it lands farther than this + REL x the
-RELOC_ODOM_GATE_REL = 0.2      # distance travelled from where the odometry says the robot is, or turned
-RELOC_ODOM_GATE_DEG = 15.0     # by more than this + DEG_PER_M x that distance (wheel odometry drifts a
-RELOC_ODOM_GATE_DEG_PER_M = 3.0  # few percent and ~1-2 deg/m; a wrong place is metres away)
+ODOMETRY_GATE_M = 0.5          # a pose (tracked, relocalized) is refused when it lands farther than
+ODOMETRY_GATE_REL = 0.2        # this + REL x the distance travelled from where the odometry says the
+ODOMETRY_GATE_DEG = 15.0       # robot is, or turned by more than this + DEG_PER_M x that distance
+ODOMETRY_GATE_DEG_PER_M = 3.0  # (wheel odometry drifts a few percent, ~1-2 deg/m; a wrong place is m away)
 ODOMETRY_COAST_S = 10.0        # ... and this long when the robot's odometry gives the motion (a blank
                                # wall through a turn in place: odometry drifts ~1-2 % over it)
 MOTION_PRIOR_ACC = 4.0         # pose-only optimization pulled toward the constant-velocity prediction with
@@ -128,7 +128,7 @@ class Tracking:
         self.pose_guess: Optional[np.ndarray] = None   # T_cw to try on the next frame (set_pose_guess)
         self._vo = None   # (frame id, T_cw, world points, keypoints) of track_last_frame_pnp's PnP
         self.n_keyframes_created = 0                   # by this run's frames (a loaded map's not counted)
-        self.n_reloc_refused = 0                       # relocalizations the odometry contradicted
+        self.n_odom_refused = 0                        # poses (tracked, relocalized) the odometry contradicted
         self.n_visual_odometry = 0                     # frames the map did not cover (track_visual_odometry)
 
     # ------------------------------------------------------------------ entry
@@ -181,6 +181,11 @@ class Tracking:
                 if not ok and not self.system.localization:
                     vo = ok = self.track_visual_odometry(frame)
                     self.n_visual_odometry += int(vo)
+                if ok and not self.odometry_agrees(frame):
+                    # a long LOST's recovery through the wide search, the frame-to-frame PnP or the
+                    # reference keyframe can lock onto a look-alike place as a relocalization can
+                    ok = vo = False
+                    self.n_odom_refused += 1
             prior, frame.prior = frame.prior, None   # relocalization and the keyframe go without it
             if ok:
                 self.refine_on_one_patch(frame, prior)
@@ -188,7 +193,7 @@ class Tracking:
                 ok = self.relocalization(frame)
                 if ok and not self.odometry_agrees(frame):
                     ok = False
-                    self.n_reloc_refused += 1
+                    self.n_odom_refused += 1
                 relocalized = ok
                 frame.ref_kf = self.ref_kf
                 if ok:
@@ -279,11 +284,11 @@ class Tracking:
         return normalize_pose(inv_T(frame.T_odom_cam) @ last.T_odom_cam)
 
     def odometry_agrees(self, frame: Frame) -> bool:
-        """A relocalized pose within reach of the robot's odometry since the last tracked frame
-        (True without odometry): within RELOC_ODOM_GATE_M + RELOC_ODOM_GATE_REL x the distance
-        travelled, and RELOC_ODOM_GATE_DEG + RELOC_ODOM_GATE_DEG_PER_M x that distance. A room's
-        repeated furniture and posters can match a wrong keyframe well enough for PnP; a wheeled
-        base cannot have jumped there."""
+        """A tracked or relocalized pose within reach of the robot's odometry since the last
+        tracked frame (True without odometry): within ODOMETRY_GATE_M + ODOMETRY_GATE_REL x the
+        distance travelled, and ODOMETRY_GATE_DEG + ODOMETRY_GATE_DEG_PER_M x that distance. A
+        room's repeated furniture and posters can match a wrong keyframe well enough for PnP; a
+        wheeled base cannot have jumped there."""
         odo = self.odometry_motion(frame)
         if odo is None or frame.T_cw is None:
             return True
@@ -293,8 +298,8 @@ class Tracking:
         D = inv_T(pred) @ frame.T_cw
         dist = float(np.linalg.norm(inv_T(frame.T_cw)[:3, 3] - inv_T(pred)[:3, 3]))
         ang = float(np.degrees(np.linalg.norm(Rotation.from_matrix(D[:3, :3]).as_rotvec())))
-        return dist <= RELOC_ODOM_GATE_M + RELOC_ODOM_GATE_REL * travel and \
-            ang <= RELOC_ODOM_GATE_DEG + RELOC_ODOM_GATE_DEG_PER_M * travel
+        return dist <= ODOMETRY_GATE_M + ODOMETRY_GATE_REL * travel and \
+            ang <= ODOMETRY_GATE_DEG + ODOMETRY_GATE_DEG_PER_M * travel
 
     def has_motion(self, frame: Frame) -> bool:
         """A motion to predict ``frame``'s pose from the last frame's: odometry or velocity."""
