@@ -585,7 +585,7 @@ def explore_run(rospy_client, tmp_path_factory):
     the robot's track, move_base's output and its CPU and RSS."""
     import psutil
     from conftest import NodeProcess
-    from nav_msgs.msg import OccupancyGrid, Path
+    from nav_msgs.msg import OccupancyGrid
     rospy = rospy_client
     d = tmp_path_factory.mktemp("explore")
     fusion = yaml.safe_load(open(os.path.join(CONFIG, "fusion.yaml")))
@@ -780,3 +780,112 @@ def test_live_tf_is_fresh_enough_for_move_base(rospy_client, start_process, samp
     assert len(a) > 200
     assert np.percentile(a, 99) < tol      # move_base looks 5 times a second: it meets the tail
     assert not timeouts
+
+
+# ---------------------------------------------------------------------- a driver bag replayed
+REPLAY_S = 12.0     # s of the corridor drive (as tests/ros/test_robot_input_e2e.py)
+REPLAY_PLAY = 0.5   # play rate: full-resolution pairs at 10 Hz wall on a 2-core machine
+
+
+@pytest.mark.slow
+def test_driver_bag_replay_plans_keep_clear_of_the_true_obstacles(rospy_client, start_process,
+                                                                   tmp_path):
+    """A driver bag (zed topics, the camera chain on /tf_static, wheel odometry; the corridor
+    drive) through navigation.launch move_base:=true with the tracker's poses. The bag's robot
+    does not obey move_base: the test is the plans move_base makes on the live grid, from where
+    the recorded robot is to a point further along its drive, as it drives. Taken into the
+    scene's frame (ground truth at the first tracked frame), every plan keeps the robot's radius,
+    less the tracker's drift and a cell of each grid, from the true walls wherever the grid had
+    mapped (unmapped cells are free to the planner and replanned once seen)."""
+    from geometry_msgs.msg import PoseStamped
+    from nav_msgs.msg import OccupancyGrid
+    from mdr_slam.conversions import pose_stamped_to_matrix
+    from mdr_slam.eval.navigation import true_grid
+    from mdr_slam.geometry import quat_to_R
+    from mdr_slam.nav import world_to_cell
+    from mdr_slam.sim import make_scene
+    from mdr_slam.sim.driver import generate_driver
+    rospy = rospy_client
+    d = str(tmp_path / "bag")
+    generate_driver(d, scene="corridor", driver="zed", duration=REPLAY_S, rate=20.0,
+                    map_cell=0.05)
+    info = yaml.safe_load(open(os.path.join(d, "driver.yaml")))
+    gt = np.loadtxt(os.path.join(d, "groundtruth.tum"))
+
+    def T_world_cam(t):
+        row = gt[np.argmin(np.abs(gt[:, 0] - t))]
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = quat_to_R(row[4:8]), row[1:4]
+        return T
+    fusion = yaml.safe_load(open(os.path.join(CONFIG, "fusion.yaml")))
+    fusion.update(map_path=str(tmp_path / "auto.ply"), autosave_period=0.0, resume=False)
+    (tmp_path / "fusion.yaml").write_text(yaml.safe_dump(fusion))
+    poses, asked = [], []     # /mdr/pose (stamp, T_map_cam); (time, plan) from make_plan
+    n_refused = 0
+    sub = rospy.Subscriber("/mdr/pose", PoseStamped, lambda m: poses.append(
+        (m.header.stamp.to_sec(), pose_stamped_to_matrix(m))))
+    grids = Recorder(rospy, "/mdr/map/grid", OccupancyGrid)
+    t = info["topics"]
+    launch = start_process(["roslaunch", NAV_LAUNCH, "move_base:=true", "respawn:=false",
+                            "bag:=" + os.path.join(d, "sequence.bag"), "delay:=3",
+                            "rate:=%.2f" % REPLAY_PLAY, "left_image:=" + t["left_image"],
+                            "right_image:=" + t["right_image"], "left_info:=" + t["left_info"],
+                            "right_info:=" + t["right_info"],
+                            "fusion_params:=%s" % (tmp_path / "fusion.yaml")], "replay")
+    try:
+        assert wait_for(lambda: poses, 90, 0.2), launch.output()[-3000:]
+        # the map frame in the scene's: the ground truth and the tracker at its first pose
+        t0, T0 = poses[0]
+        W = T_world_cam(t0) @ np.linalg.inv(T0)
+        ahead = T_world_cam(gt[0, 0] + 0.8 * REPLAY_S)[:3, 3]
+        g_map = np.linalg.inv(W) @ np.r_[ahead, 1.0]
+        # move_base's global plan from the tracked camera to the goal (~make_plan: the planner a
+        # goal would run, on the same costmap) every half second (wall) while the bag plays
+        t_end = time.time() + 60 + REPLAY_S / REPLAY_PLAY
+        while poses[-1][0] < gt[-1, 0] - 0.2 and time.time() < t_end:
+            try:
+                asked.append((rospy.get_time(), make_plan(rospy, poses[-1][1][:2, 3],
+                                                          g_map[:2])))
+            except rospy.ServiceException:   # no plan (yet): a start outside the costmap
+                n_refused += 1
+            time.sleep(0.5)
+    finally:
+        sub.unregister()
+        grids.stop()
+        launch.stop()
+    scene = make_scene("corridor", seed=0)
+    tg = true_grid(scene)
+    radius = _nav_yaml("costmap_common_params.yaml")["robot_radius"]
+    worst = []
+    n_known = n_unknown = 0
+    for ta, xy in asked:
+        xy = xy.reshape(-1, 2)
+        if not len(xy):
+            continue
+        w = (W @ np.c_[xy, np.zeros(len(xy)), np.ones(len(xy))].T).T[:, :2]
+        rc = world_to_cell(w, tg.origin, tg.resolution)
+        inside = (rc >= 0).all(1) & (rc[:, 0] < tg.occ.shape[0]) & (rc[:, 1] < tg.occ.shape[1])
+        assert inside.all(), "a plan leaves the scene"
+        # unmapped space may be crossed (it is free in nav_grid and replanned once seen): only
+        # the poses in cells the grid had seen when the plan was made count
+        gm = _grid_before(grids.msgs, ta)
+        if gm is None:
+            continue
+        g, origin, res = msg_grid(gm)
+        gc = world_to_cell(xy, origin, res)
+        ing = (gc >= 0).all(1) & (gc[:, 0] < g.shape[0]) & (gc[:, 1] < g.shape[1])
+        known = np.zeros(len(xy), bool)
+        known[ing] = g[gc[ing, 0], gc[ing, 1]] >= 0
+        n_known += int(known.sum())
+        n_unknown += int((~known).sum())
+        if known.any():
+            worst.append(float(tg.clearance(w[known]).min()))
+    # the tracker's pose drift over the drive (live ATE 0.3-0.6 % of the path) and the grid's cells
+    drift = np.linalg.norm((W @ poses[-1][1])[:3, 3] - T_world_cam(poses[-1][0])[:3, 3])
+    print("replay: %d poses, %d plans (%d make_plan calls failed; %d poses in mapped cells, %d "
+          "in unmapped ones), smallest true clearance of a plan's centre line in mapped cells %.3f m (robot radius %.2f m), "
+          "tracker drift at the end %.3f m"
+          % (len(poses), len(asked), n_refused, n_known, n_unknown,
+             min(worst) if worst else float("nan"), radius, drift))
+    assert len(worst) >= 10 and n_known >= 500, launch.output()[-3000:]
+    assert min(worst) >= radius - drift - 2 * tg.resolution, sorted(worst)[:5]
