@@ -221,6 +221,11 @@ class PoseRelay:
         t["keyframes"], t["loop_closures"] = int(res.n_keyframes), int(res.n_loop_closures)
         t["visual_odometry"] = int(getattr(res, "n_visual_odometry", 0))
         t["odom_refused"] = int(getattr(res, "n_odom_refused", 0))
+        refusal = getattr(res, "odom_refusal", None)
+        if refusal is not None:
+            self.warn("odomrefused", "pose_node: a pose %.2f m / %.0f deg from where the wheel "
+                      "odometry puts the camera (%.2f m travelled since the last tracked frame, "
+                      "%d points) was refused at %.3f" % (*refusal, res.stamp))
         if res.state == "LOST":
             t["lost"] += 1
         elif res.T_map_cam is not None:
@@ -242,7 +247,7 @@ class PoseRelay:
         stat.add("latency_s", "%.3f" % self.last_latency)       # image (or input pose) stamp -> published
         stat.add("poses_published", str(self.n_published))
         stat.add("drops", str(sum(v for k, v in self.warn.counts.items()
-                                  if k not in ("back", "calib_change"))))
+                                  if k not in ("back", "calib_change", "odomrefused"))))
         stat.add("tracking_time_ms", "%.1f" % t["time_ms"])
         stat.add("frames_dropped_busy", str(self.warn.counts.get("busy", 0)))   # newest kept
         stat.add("frames_lost", str(t["lost"]))

@@ -50,6 +50,13 @@ FRAME_PROCESS = True           # threads: frames (ORB on both images, stereo mat
 _REASONS = {"local_ba": 1, "loop_closure": 2}
 
 
+def _refusal_at(refusal, stamp: float):
+    """Tracking.last_odom_refusal without its stamp if it was made for the frame at ``stamp``."""
+    if refusal is None or abs(refusal[0] - float(stamp)) > 1e-9:
+        return None
+    return tuple(refusal[1:])
+
+
 class System:
     def __init__(self, camera, config=None, threads: bool = True,
                  T_map_cam0: Optional[np.ndarray] = None):
@@ -203,6 +210,7 @@ class System:
             n_loop_closures=self.map.n_loop_closures,
             n_visual_odometry=self.tracking.n_visual_odometry,
             n_odom_refused=self.tracking.n_odom_refused,
+            odom_refusal=_refusal_at(self.tracking.last_odom_refusal, stamp),
             track_ms=t_track, track_cpu_ms=c_track,
             lock_wait_ms=self.tracking.lock_wait_ms, frame_ms=t_frame)
 

@@ -129,6 +129,7 @@ class Tracking:
         self._vo = None   # (frame id, T_cw, world points, keypoints) of track_last_frame_pnp's PnP
         self.n_keyframes_created = 0                   # by this run's frames (a loaded map's not counted)
         self.n_odom_refused = 0                        # poses (tracked, relocalized) the odometry contradicted
+        self.last_odom_refusal = None                  # (stamp, m, deg, m travelled, points) of the last
         self.n_visual_odometry = 0                     # frames the map did not cover (track_visual_odometry)
 
     # ------------------------------------------------------------------ entry
@@ -298,8 +299,12 @@ class Tracking:
         D = inv_T(pred) @ frame.T_cw
         dist = float(np.linalg.norm(inv_T(frame.T_cw)[:3, 3] - inv_T(pred)[:3, 3]))
         ang = float(np.degrees(np.linalg.norm(Rotation.from_matrix(D[:3, :3]).as_rotvec())))
-        return dist <= ODOMETRY_GATE_M + ODOMETRY_GATE_REL * travel and \
+        agrees = dist <= ODOMETRY_GATE_M + ODOMETRY_GATE_REL * travel and \
             ang <= ODOMETRY_GATE_DEG + ODOMETRY_GATE_DEG_PER_M * travel
+        if not agrees:
+            self.last_odom_refusal = (frame.stamp, dist, ang, travel,
+                                      int(np.count_nonzero(frame.mp_ids >= 0)))
+        return agrees
 
     def has_motion(self, frame: Frame) -> bool:
         """A motion to predict ``frame``'s pose from the last frame's: odometry or velocity."""
