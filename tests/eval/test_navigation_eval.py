@@ -95,3 +95,22 @@ def test_summary_counts_misses_and_slow_goals():
     s = summarise(recs, max_speed=0.4)
     assert s["reached"] == 2 and s["collisions"] == 1 and s["plans_through_occupied"] == 2
     assert s["max_localization_error_m"] == 0.2 and s["slower_than_2x_shortest"] == [1]
+
+
+def test_map_alignment_takes_out_a_rotated_map():
+    """A map rotated by 6 degrees about its start (an early heading error) and shifted: the
+    alignment lays it back on the scene (what is left is the pose's error against its own map);
+    a trajectory too short to fix a rotation gives the identity."""
+    from mdr_slam.eval.navigation import map_alignment
+    rng = np.random.default_rng(0)
+    true = np.c_[np.linspace(0, 6, 60), 0.5 * np.sin(np.linspace(0, 3, 60))] + [2.0, 3.0]
+    a = np.radians(6.0)
+    R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    est = (true - true[0]) @ R.T + true[0] + [0.1, -0.05] + rng.normal(0, 0.01, true.shape)
+    raw = np.linalg.norm(est - true, axis=1)
+    A = map_alignment(est, true)
+    left = np.linalg.norm(est @ A[:2, :2].T + A[:2, 2] - true, axis=1)
+    assert raw.max() > 0.5 and left.max() < 0.05, (raw.max(), left.max())
+    assert np.degrees(np.arctan2(A[1, 0], A[0, 0])) == pytest.approx(-6.0, abs=0.5)
+    assert np.array_equal(map_alignment(est[:5], true[:5]), np.eye(3))   # 0.4 m: no rotation
+    assert np.array_equal(map_alignment([], []), np.eye(3))

@@ -21,12 +21,14 @@ from scipy.ndimage import distance_transform_edt, label
 from ..nav import cell_to_world, plan_path, traversable, world_to_cell
 
 __all__ = ["TrueGrid", "true_grid", "sample_goals", "path_length", "clearance_along",
-           "plan_crosses_occupied", "localization_errors", "score_goal", "summarise"]
+           "plan_crosses_occupied", "localization_errors", "map_alignment", "score_goal",
+           "summarise"]
 
 OCCUPIED = 100
 GOAL_CLEARANCE = 0.45     # m from a goal's centre to the nearest true obstacle
 MIN_GOAL_STEP = 2.0       # m between consecutive goals (straight line)
 HIDDEN_SHARE = 0.5        # about this share of goals is out of sight of the previous one
+ALIGN_MIN_SPREAD = 1.0    # m: a trajectory shorter than this fixes no rotation (identity then)
 
 
 class TrueGrid:
@@ -192,17 +194,38 @@ def localization_errors(est_t: Sequence[float], est_xy, gt_t: Sequence[float], g
     return np.linalg.norm(est_xy - truth, axis=1)[keep]
 
 
+def map_alignment(est_xy, true_xy) -> np.ndarray:
+    """The planar rigid transform (3x3, homogeneous) that best maps estimated base positions onto
+    the true ones (least squares, evo's Umeyama without scale): how the map a user sees lies on
+    the scene. A user picks a goal on the map's walls, so an early heading error that rotates the
+    whole map moves the goal with it; the error left after this alignment is the pose's error
+    against its own map. Identity while the positions span less than ALIGN_MIN_SPREAD m."""
+    from evo.core.geometry import umeyama_alignment
+    est = np.asarray(est_xy, float).reshape(-1, 2)
+    true = np.asarray(true_xy, float).reshape(-1, 2)
+    A = np.eye(3)
+    if len(est) < 3 or np.linalg.norm(np.ptp(est, axis=0)) < ALIGN_MIN_SPREAD:
+        return A
+    R, t, _ = umeyama_alignment(est.T, true.T, False)
+    A[:2, :2], A[:2, 2] = R, t
+    return A
+
+
 def score_goal(goal: Dict, reached: bool, time_s: float, true_xy, tg: TrueGrid,
                robot_radius: float, collisions: int, plans_through_occupied: int,
-               loc_errors) -> Dict:
-    """The figures of one goal (``navigation.json``'s per-goal record)."""
+               loc_errors, start_errors=()) -> Dict:
+    """The figures of one goal (``navigation.json``'s per-goal record). ``loc_errors``: the
+    pose's errors against its map aligned to the scene (:func:`map_alignment`);
+    ``start_errors``: against the map fixed to the scene at the first tracked frame."""
     loc = np.asarray(loc_errors, float)
+    start = np.asarray(start_errors, float)
     return {"goal": goal["xy"], "hidden": goal["hidden"], "reached": bool(reached),
             "time_s": round(float(time_s), 2), "path_m": round(path_length(true_xy), 3),
             "shortest_m": goal["shortest_m"], "collisions": int(collisions),
             "min_clearance_m": round(clearance_along(tg, true_xy, robot_radius), 3),
             "plans_through_occupied": int(plans_through_occupied),
-            "max_localization_error_m": round(float(loc.max()), 3) if len(loc) else None}
+            "max_localization_error_m": round(float(loc.max()), 3) if len(loc) else None,
+            "max_error_from_start_m": round(float(start.max()), 3) if len(start) else None}
 
 
 def summarise(records: List[Dict], max_speed: float) -> Dict:
@@ -211,8 +234,11 @@ def summarise(records: List[Dict], max_speed: float) -> Dict:
     slow = [i for i, r in enumerate(records)
             if r["reached"] and r["time_s"] > 2.0 * r["shortest_m"] / max_speed]
     loc = [r["max_localization_error_m"] for r in records if r["max_localization_error_m"] is not None]
+    start = [r.get("max_error_from_start_m") for r in records
+             if r.get("max_error_from_start_m") is not None]
     return {"goals": len(records), "reached": sum(r["reached"] for r in records),
             "collisions": sum(r["collisions"] for r in records),
             "plans_through_occupied": sum(r["plans_through_occupied"] for r in records),
             "max_localization_error_m": max(loc) if loc else None,
+            "max_error_from_start_m": max(start) if start else None,
             "slower_than_2x_shortest": slow}
