@@ -585,7 +585,7 @@ def explore_run(rospy_client, tmp_path_factory):
     the robot's track, move_base's output and its CPU and RSS."""
     import psutil
     from conftest import NodeProcess
-    from nav_msgs.msg import OccupancyGrid
+    from nav_msgs.msg import OccupancyGrid, Path
     rospy = rospy_client
     d = tmp_path_factory.mktemp("explore")
     fusion = yaml.safe_load(open(os.path.join(CONFIG, "fusion.yaml")))
