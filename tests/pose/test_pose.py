@@ -410,9 +410,9 @@ def test_wheel_odometry_carries_tracking_through_a_long_blank_turn(sequence):
     assert states[False] != "OK", states
 
 
-def test_a_relocalization_the_odometry_contradicts_is_refused(sequence):
-    """LOST, then a view of an already mapped place: relocalized where the robot's odometry puts
-    the camera near it, refused (still LOST) where the odometry says the robot is 2 m away."""
+def _lost_then_mapped_view(sequence, gap_s):
+    """12 frames tracked with wheel odometry, then LOST, then frame 8's view ``gap_s`` s later
+    with the odometry where it really is (shift 0) or 2 m off along x: {shift: TrackResult}."""
     poses, images = sequence
 
     def odom(i, shift=0.0):
@@ -427,11 +427,18 @@ def test_a_relocalization_the_odometry_contradicts_is_refused(sequence):
             f.T_odom_cam = odom(i)
             assert s.track(f.stamp, frame=f).state == "OK"
         s.tracking.state = "LOST"     # as if the camera had been covered
-        s.tracking.velocity = None
-        f = s.make_frame(0.05 * 12 + 20.0, *images[8])   # beyond the odometry coast: relocalize
+        f = s.make_frame(0.05 * 12 + gap_s, *images[8])
         f.T_odom_cam = odom(8, shift)
-        got[shift] = (s.track(f.stamp, frame=f).state, s.tracking.n_odom_refused)
+        got[shift] = s.track(f.stamp, frame=f)
         s.shutdown()
+    return got
+
+
+def test_a_relocalization_the_odometry_contradicts_is_refused(sequence):
+    """LOST beyond the odometry coast, then a view of an already mapped place: relocalized where
+    the robot's odometry puts the camera near it, refused (still LOST) where the odometry says the
+    robot is 2 m away."""
+    got = {k: (r.state, r.n_odom_refused) for k, r in _lost_then_mapped_view(sequence, 20.0).items()}
     assert got == {0.0: ("RELOCALIZED", 0), 2.0: ("LOST", 1)}, got
 
 
@@ -439,25 +446,8 @@ def test_a_recovery_the_odometry_contradicts_is_refused(sequence):
     """LOST for a moment (within the odometry coast), then a view the map covers: tracking
     recovers where the robot's odometry puts the camera near it; where the odometry says the robot
     is 2 m away, the recovered pose is refused (LOST), as a relocalization would be."""
-    poses, images = sequence
-
-    def odom(i, shift=0.0):
-        T = inv_T(poses[0]) @ poses[i]
-        T[0, 3] += shift
-        return T
-    got = {}
-    for shift in (0.0, 2.0):
-        s = System(CAM, threads=False)
-        for i in range(12):
-            f = s.make_frame(0.05 * i, *images[i])
-            f.T_odom_cam = odom(i)
-            assert s.track(f.stamp, frame=f).state == "OK"
-        s.tracking.state = "LOST"     # as if the last frames had been blank
-        f = s.make_frame(0.05 * 12 + 1.0, *images[8])   # within the coast: the tracking steps run
-        f.T_odom_cam = odom(8, shift)
-        res = s.track(f.stamp, frame=f)
-        got[shift] = (res.state, res.n_odom_refused, res.odom_refusal)
-        s.shutdown()
+    got = {k: (r.state, r.n_odom_refused, r.odom_refusal)   # within the coast: tracking steps
+           for k, r in _lost_then_mapped_view(sequence, 1.0).items()}
     assert got[0.0] == ("OK", 0, None), got
     state, n, refusal = got[2.0]
     assert state == "LOST" and n >= 1, got
