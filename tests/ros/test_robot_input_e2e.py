@@ -182,15 +182,13 @@ def test_driver_bag_through_the_launch_file(variant, driver_bag, rospy_client, s
     # stays valid when no image is tracked. The first image's own stamp comes before its
     # tracking latency; the copies are future-dated by MAP_ODOM_AHEAD, so tf at the current time
     # stays valid while no copy is more than MAP_ODOM_AHEAD after the one before (a loaded
-    # machine delays a timer callback past its tick: CI saw 0.2 s once, at the start); the timer
-    # runs at 20 Hz
+    # machine delays a timer callback past its tick: CI saw 0.2 s once, at the start)
     from mdr_slam.nodes.pose_node import MAP_ODOM_AHEAD
     mo = np.sort(rec["map_odom"])
     assert len(mo) > 1.5 * posed, (len(mo), posed)
     assert mo[1] - mo[0] < 0.3 + MAP_ODOM_AHEAD, mo[:3]
     gaps = np.diff(mo[1:][mo[1:] < t_last])
     assert np.max(gaps) <= MAP_ODOM_AHEAD + 1e-6, (np.argmax(gaps), mo[:8])
-    assert np.median(gaps) == pytest.approx(0.05, abs=0.01), np.median(gaps)
     # /mdr/odom for robot_localization: the visual pose in map (wheels own odom), covariance,
     # a twist in base_link whose speed is the true one
     od = rec["odom"][5:]
