@@ -42,6 +42,11 @@ from .health import ProcessHealth, RateWindow, update_diagnostics
 from .pose_map_services import PoseMapServices
 from .stereo_input import StereoInput
 
+STAGE_WINDOW = 200           # frames the diagnostics' per-stage median times are taken over
+# the pose node's stages: waiting for the wheel odometry at the image stamp, the Frame (ORB on
+# both images, stereo matching), tracking proper, and its wait for the map lock (bundle
+# adjustment, loop correction) within it
+STAGES = ("odometry_wait", "frame", "tracking", "map_lock_wait")
 PATH_MAX_LENGTH = 100000    # /mdr/path keeps at most this many poses (the oldest go)
 PATH_PERIOD = 0.5           # s: /mdr/path at most this often (its size grows with the run)
 PATH_MIN_TRANSLATION = 0.05  # m: a pose joins /mdr/path once the camera moved this far ...
@@ -202,6 +207,8 @@ class PoseRelay:
         self.rate = RateWindow(10.0)
         self.n_published = 0
         self.last_latency = float("nan")
+        # per-stage wall ms of the last STAGE_WINDOW frames (OrbNode): where a slow frame's time went
+        self.stages = {k: deque(maxlen=STAGE_WINDOW) for k in STAGES}
         self.tracking = {"state": "GROUNDTRUTH" if self.p.source == "groundtruth"
                          else "NOT_INITIALIZED", "time_ms": float("nan"), "lost": 0,
                          "keyframes": 0, "loop_closures": 0, "visual_odometry": 0, "odom_refused": 0,
@@ -217,6 +224,12 @@ class PoseRelay:
     def note_tracking(self, res) -> None:
         """Record one tracking result (OrbNode) for the diagnostics."""
         t = self.tracking
+        track_ms = getattr(res, "track_ms", None)
+        if track_ms is not None:
+            frame_ms = float(getattr(res, "frame_ms", 0.0) or 0.0)
+            self.note_stage("frame", frame_ms)
+            self.note_stage("tracking", float(track_ms) - frame_ms)
+            self.note_stage("map_lock_wait", float(getattr(res, "lock_wait_ms", 0.0) or 0.0))
         t["state"], t["time_ms"] = str(res.state), float(res.time_ms)
         t["keyframes"], t["loop_closures"] = int(res.n_keyframes), int(res.n_loop_closures)
         t["visual_odometry"] = int(getattr(res, "n_visual_odometry", 0))
@@ -230,6 +243,10 @@ class PoseRelay:
             t["lost"] += 1
         elif res.T_map_cam is not None:
             t["last_ok"] = rospy.Time.now()
+
+    def note_stage(self, stage: str, ms: float) -> None:
+        """One frame's wall ms in ``stage`` (STAGES) for the diagnostics' medians."""
+        self.stages[stage].append(float(ms))
 
     def diagnostics(self, stat):
         t = self.tracking
@@ -249,6 +266,10 @@ class PoseRelay:
         stat.add("drops", str(sum(v for k, v in self.warn.counts.items()
                                   if k not in ("back", "calib_change", "odomrefused"))))
         stat.add("tracking_time_ms", "%.1f" % t["time_ms"])
+        for k in STAGES:   # medians over the last STAGE_WINDOW frames
+            ms = self.stages[k].copy()   # one C call: the other threads append meanwhile
+            if ms:
+                stat.add("median_ms: " + k, "%.1f" % float(np.median(ms)))
         stat.add("frames_dropped_busy", str(self.warn.counts.get("busy", 0)))   # newest kept
         stat.add("frames_lost", str(t["lost"]))
         stat.add("keyframes", str(t["keyframes"]))   # alive: culled ones are not counted
@@ -464,7 +485,18 @@ class LatestSlot:
         with self._cv:
             if not self._items and not self._closed:
                 self._cv.wait(timeout)
-            return self._items.popleft() if self._items else None
+            if not self._items:
+                return None
+            item = self._items.popleft()
+            self._cv.notify_all()   # wait_empty
+            return item
+
+    def wait_empty(self, timeout=None) -> bool:
+        """Wait (up to ``timeout`` s) until no item is waiting; True when none is."""
+        with self._cv:
+            if self._items and not self._closed:
+                self._cv.wait_for(lambda: not self._items or self._closed, timeout)
+            return not self._items
 
     def close(self) -> None:
         with self._cv:
@@ -532,7 +564,7 @@ class OrbNode(PoseMapServices):
         self.frames = LatestSlot(int(p.max_pending)) if PIPELINE_FRAMES else None
         self.worker = threading.Thread(
             target=self._serve, name="frames", daemon=True,
-            args=(self.slot, self.process, None if PIPELINE_FRAMES else self._idle))
+            args=(self.slot, self.process, None if PIPELINE_FRAMES else self._idle, self.frames))
         self.worker.start()
         self.tracker = None
         if self.frames is not None:
@@ -598,10 +630,16 @@ class OrbNode(PoseMapServices):
             self.warn("busy", "tracking busy: the oldest waiting stereo pair was dropped",
                       level="info")
 
-    def _serve(self, slot, handle, idle=None) -> None:
+    def _serve(self, slot, handle, idle=None, downstream=None) -> None:
         """A worker thread: ``handle(*item)`` for each item of ``slot`` until it closes; ``idle()``
-        when none came (within HELD_POLL s while results are held)."""
+        when none came (within HELD_POLL s while results are held). With ``downstream`` (the
+        made frames' slot), the next item is taken only once no made frame waits there: a pair
+        is turned into a Frame (ORB on both images) only when the tracker will take it, never
+        to be dropped unused while tracking is slower than the camera; it is still made while
+        the previous frame is tracked."""
         while not slot.closed and not rospy.is_shutdown():
+            if downstream is not None and not downstream.wait_empty(timeout=0.5):
+                continue
             item = slot.get(timeout=HELD_POLL if idle is not None and self.held else 0.5)
             if item is None:
                 if idle is not None:
@@ -674,7 +712,10 @@ class OrbNode(PoseMapServices):
             self.warn("track", "tracking failed on frame %.3f: %r" % (t, e), level="err")
             return
         if hasattr(frame, "T_odom_cam"):   # wheel odometry: the motion model (not ORB-SLAM3's)
+            t0 = time.perf_counter()
             frame.T_odom_cam = self.relay.odom_camera_at(stamp)
+            if self.relay.wheel_odom:
+                self.relay.note_stage("odometry_wait", 1000.0 * (time.perf_counter() - t0))
         if self.frames is None:
             self.track(stamp, system, frame)
         elif self.frames.put((stamp, system, frame)):
