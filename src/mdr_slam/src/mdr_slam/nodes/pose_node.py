@@ -639,6 +639,8 @@ class OrbNode(PoseMapServices):
         the previous frame is tracked."""
         while not slot.closed and not rospy.is_shutdown():
             if downstream is not None and not downstream.wait_empty(timeout=0.5):
+                if downstream.closed:
+                    return
                 continue
             item = slot.get(timeout=HELD_POLL if idle is not None and self.held else 0.5)
             if item is None:
