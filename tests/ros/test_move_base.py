@@ -890,5 +890,7 @@ def test_driver_bag_replay_plans_keep_clear_of_the_true_obstacles(rospy_client, 
           "tracker drift at the end %.3f m"
           % (len(poses), len(asked), n_refused, n_known, n_unknown,
              min(worst) if worst else float("nan"), radius, drift))
-    assert len(worst) >= 10 and n_known >= 500, launch.output()[-3000:]
+    # enough evidence, not a figure: how many plan poses fall in mapped cells depends on how far
+    # the grid has come when each plan is made, which moves with the machine's load (400-600)
+    assert len(worst) >= 10 and n_known >= 250, launch.output()[-3000:]
     assert min(worst) >= radius - drift - 2 * tg.resolution, sorted(worst)[:5]

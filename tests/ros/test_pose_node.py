@@ -215,53 +215,6 @@ def test_latest_slot_keeps_the_newest_and_counts_drops():
     assert [two.get(0.01), two.get(0.01), two.get(0.01)] == [2, 3, None]
 
 
-def test_frames_are_made_only_for_the_tracker_to_take():
-    """The frame thread takes the next pair only once the tracker took the last made frame: a
-    tracker slower than the camera costs dropped pairs, not ORB extractions thrown away."""
-    import threading
-    import time
-    from types import SimpleNamespace
-    from mdr_slam.nodes.pose_node import LatestSlot, OrbNode
-    empty = LatestSlot(2)
-    assert empty.wait_empty(timeout=0.01)
-    empty.put(1)
-    t0 = time.monotonic()
-    assert not empty.wait_empty(timeout=0.05) and time.monotonic() - t0 >= 0.04
-    threading.Timer(0.05, empty.get).start()
-    assert empty.wait_empty(timeout=5.0)            # woken by the get
-    pairs, frames = LatestSlot(2), LatestSlot(2)
-    made, tracked = [], []
-    node = SimpleNamespace(held=[], warn=lambda *a, **k: None)
-
-    def make(i):
-        made.append(i)
-        time.sleep(0.005)
-        frames.put((i,))
-
-    def track(i):
-        tracked.append(i)
-        time.sleep(0.03)                            # six pairs' time at 200 Hz
-    threads = [threading.Thread(target=OrbNode._serve, args=(node, pairs, make, None, frames)),
-               threading.Thread(target=OrbNode._serve, args=(node, frames, track))]
-    for th in threads:
-        th.start()
-    for i in range(60):
-        pairs.put((i,))
-        time.sleep(0.005)
-    deadline = time.monotonic() + 10.0
-    while (len(tracked) < len(made) or pairs.wait_empty(0) is False) and \
-            time.monotonic() < deadline:
-        time.sleep(0.01)
-    pairs.close()
-    frames.close()
-    for th in threads:
-        th.join(5.0)
-    assert not any(th.is_alive() for th in threads)
-    assert frames.dropped == 0                      # no made frame was thrown away
-    assert made == tracked and tracked == sorted(tracked) and tracked[-1] == 59
-    assert pairs.dropped > 20 and len(made) + pairs.dropped == 60
-
-
 def test_orb_node_drops_stale_frames_when_busy(rospy_client, start_process):
     """A burst faster than tracking: the node tracks the newest pair, drops the ones that waited
     (counted in /diagnostics), and the frames after a gap are still tracked (motion model dt)."""

@@ -485,18 +485,7 @@ class LatestSlot:
         with self._cv:
             if not self._items and not self._closed:
                 self._cv.wait(timeout)
-            if not self._items:
-                return None
-            item = self._items.popleft()
-            self._cv.notify_all()   # wait_empty
-            return item
-
-    def wait_empty(self, timeout=None) -> bool:
-        """Wait (up to ``timeout`` s) until no item is waiting; True when none is."""
-        with self._cv:
-            if self._items and not self._closed:
-                self._cv.wait_for(lambda: not self._items or self._closed, timeout)
-            return not self._items
+            return self._items.popleft() if self._items else None
 
     def close(self) -> None:
         with self._cv:
@@ -564,7 +553,7 @@ class OrbNode(PoseMapServices):
         self.frames = LatestSlot(int(p.max_pending)) if PIPELINE_FRAMES else None
         self.worker = threading.Thread(
             target=self._serve, name="frames", daemon=True,
-            args=(self.slot, self.process, None if PIPELINE_FRAMES else self._idle, self.frames))
+            args=(self.slot, self.process, None if PIPELINE_FRAMES else self._idle))
         self.worker.start()
         self.tracker = None
         if self.frames is not None:
@@ -630,18 +619,10 @@ class OrbNode(PoseMapServices):
             self.warn("busy", "tracking busy: the oldest waiting stereo pair was dropped",
                       level="info")
 
-    def _serve(self, slot, handle, idle=None, downstream=None) -> None:
+    def _serve(self, slot, handle, idle=None) -> None:
         """A worker thread: ``handle(*item)`` for each item of ``slot`` until it closes; ``idle()``
-        when none came (within HELD_POLL s while results are held). With ``downstream`` (the
-        made frames' slot), the next item is taken only once no made frame waits there: a pair
-        is turned into a Frame (ORB on both images) only when the tracker will take it, never
-        to be dropped unused while tracking is slower than the camera; it is still made while
-        the previous frame is tracked."""
+        when none came (within HELD_POLL s while results are held)."""
         while not slot.closed and not rospy.is_shutdown():
-            if downstream is not None and not downstream.wait_empty(timeout=0.5):
-                if downstream.closed:
-                    return
-                continue
             item = slot.get(timeout=HELD_POLL if idle is not None and self.held else 0.5)
             if item is None:
                 if idle is not None:
