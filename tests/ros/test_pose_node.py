@@ -215,6 +215,26 @@ def test_latest_slot_keeps_the_newest_and_counts_drops():
     assert [two.get(0.01), two.get(0.01), two.get(0.01)] == [2, 3, None]
 
 
+def test_pose_node_stages_split_a_frame_into_making_tracking_and_the_tracking_cpu():
+    """The diagnostics' stage medians: the Frame (ORB, stereo) apart from tracking, and the
+    tracking thread's CPU beside its wall time (below it, the thread waited for the CPU or the
+    GIL)."""
+    from collections import deque
+    from types import SimpleNamespace
+    from mdr_slam.nodes.pose_node import STAGES, PoseRelay
+    relay = SimpleNamespace(stages={k: deque() for k in STAGES},
+                            tracking={"state": "", "time_ms": 0.0, "keyframes": 0,
+                                      "loop_closures": 0, "lost": 0})
+    relay.note_stage = lambda stage, ms: PoseRelay.note_stage(relay, stage, ms)
+    res = SimpleNamespace(state="LOST", T_map_cam=None, time_ms=70.0, n_keyframes=3,
+                          n_loop_closures=0, track_ms=70.0, frame_ms=40.0, track_cpu_ms=12.0,
+                          lock_wait_ms=1.5, odom_refusal=None)
+    PoseRelay.note_tracking(relay, res)
+    got = {k: list(v) for k, v in relay.stages.items() if v}
+    assert got == {"frame": [40.0], "tracking": [30.0], "tracking_cpu": [12.0],
+                   "map_lock_wait": [1.5]}
+
+
 def test_orb_node_drops_stale_frames_when_busy(rospy_client, start_process):
     """A burst faster than tracking: the node tracks the newest pair, drops the ones that waited
     (counted in /diagnostics), and the frames after a gap are still tracked (motion model dt)."""

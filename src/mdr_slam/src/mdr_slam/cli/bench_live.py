@@ -532,9 +532,10 @@ def _summarize(args, bag, lst: "_Listener", samples, elapsed, pose_source) -> di
     r["depth_cpu_ms_per_cloud"] = {k: fdiag("depth", "cpu_ms_%s_per_cloud" % k)
                                    for k in ("match", "filter")}
     r["pose_dropped_busy"] = fdiag("pose", "frames_dropped_busy")   # newest pair kept
-    # the pose node's stages, median wall ms over its last frames (PoseRelay.STAGES)
+    # the pose node's stages, median ms over its last frames (PoseRelay.STAGES)
     r["pose_stage_ms"] = OrderedDict((k, fdiag("pose", "median_ms: " + k)) for k in
-                                     ("odometry_wait", "frame", "tracking", "map_lock_wait"))
+                                     ("odometry_wait", "frame", "tracking", "tracking_cpu",
+                                      "map_lock_wait"))
     r["pose_keyframes"] = fdiag("pose", "keyframes")
     r["pose_loop_closures"] = fdiag("pose", "loop_closures")
     r["pose_visual_odometry"] = fdiag("pose", "frames_visual_odometry")
@@ -605,8 +606,9 @@ def _report_md(r) -> str:
              "| pose node: frames skipped while busy; tracking wall ms median / p90 / max | "
              "%s; %s / %s / %s |" % (r["pose_dropped_busy"], r["tracking_ms"]["median"],
                                      r["tracking_ms"]["p90"], r["tracking_ms"]["max"]),
-             "| pose node stages at the end, median wall ms of its last 200 frames: odometry "
-             "wait / frame (ORB, stereo matching) / tracking / map lock wait within tracking | "
+             "| pose node stages at the end, median ms of its last 200 frames: odometry wait / "
+             "frame (ORB, stereo matching) / tracking / its thread's CPU / map lock wait within "
+             "tracking | "
              "%s |" % " / ".join("-" if v is None else "%.1f" % v
                                  for v in r.get("pose_stage_ms", {}).values()),
              "| latency image stamp -> map, median / p90 | %s / %s ms |" % (

@@ -46,7 +46,7 @@ STAGE_WINDOW = 200           # frames the diagnostics' per-stage median times ar
 # the pose node's stages: waiting for the wheel odometry at the image stamp, the Frame (ORB on
 # both images, stereo matching), tracking proper, and its wait for the map lock (bundle
 # adjustment, loop correction) within it
-STAGES = ("odometry_wait", "frame", "tracking", "map_lock_wait")
+STAGES = ("odometry_wait", "frame", "tracking", "tracking_cpu", "map_lock_wait")
 PATH_MAX_LENGTH = 100000    # /mdr/path keeps at most this many poses (the oldest go)
 PATH_PERIOD = 0.5           # s: /mdr/path at most this often (its size grows with the run)
 PATH_MIN_TRANSLATION = 0.05  # m: a pose joins /mdr/path once the camera moved this far ...
@@ -229,6 +229,9 @@ class PoseRelay:
             frame_ms = float(getattr(res, "frame_ms", 0.0) or 0.0)
             self.note_stage("frame", frame_ms)
             self.note_stage("tracking", float(track_ms) - frame_ms)
+            # CPU of the tracking thread: below the wall time, the thread waited (the GIL, a
+            # loaded machine); as high, the work itself is slower
+            self.note_stage("tracking_cpu", float(getattr(res, "track_cpu_ms", 0.0) or 0.0))
             self.note_stage("map_lock_wait", float(getattr(res, "lock_wait_ms", 0.0) or 0.0))
         t["state"], t["time_ms"] = str(res.state), float(res.time_ms)
         t["keyframes"], t["loop_closures"] = int(res.n_keyframes), int(res.n_loop_closures)
@@ -245,7 +248,8 @@ class PoseRelay:
             t["last_ok"] = rospy.Time.now()
 
     def note_stage(self, stage: str, ms: float) -> None:
-        """One frame's wall ms in ``stage`` (STAGES) for the diagnostics' medians."""
+        """One frame's ms in ``stage`` (STAGES: wall time, but tracking_cpu) for the diagnostics'
+        medians."""
         self.stages[stage].append(float(ms))
 
     def diagnostics(self, stat):
