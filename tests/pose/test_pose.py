@@ -1847,22 +1847,3 @@ def test_a_view_the_map_does_not_cover_is_tracked_by_visual_odometry_and_mapped(
     for f in vo_frames:   # its keyframe maps every stereo point, far ones too
         assert np.count_nonzero(f.ref_kf.mp_ids >= 0) >= 0.9 * np.count_nonzero(f.depth > 0)
     assert _ate(s, poses) < 0.02
-
-
-def test_a_global_ba_follows_a_loop_only_where_it_pays():
-    """A full BA after a loop where the loop moved the map by more than millimetres, and never
-    in a map of more than GLOBAL_BA_MAX_KEYFRAMES keyframes (ORB-SLAM3's rule): there the pose
-    graph alone corrects it."""
-    from types import SimpleNamespace
-    from mdr_slam.pose import loop_closing
-    from mdr_slam.pose.loop_closing import LoopClosing
-
-    def pays(n_kfs, moved, rot):
-        lc = SimpleNamespace(map=SimpleNamespace(good_keyframes=lambda: [object()] * n_kfs),
-                             last_correction=(moved, rot))
-        return LoopClosing.global_ba_pays(lc)
-
-    n = loop_closing.GLOBAL_BA_MAX_KEYFRAMES
-    assert pays(n, 0.3, 5.0)
-    assert not pays(n, 0.001, 0.01)     # a place closed again: nothing to spread
-    assert not pays(n + 1, 0.3, 5.0)    # a large map: the pose graph only

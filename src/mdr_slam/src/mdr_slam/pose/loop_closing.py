@@ -72,8 +72,6 @@ GLOBAL_BA_TOL = 1e-3           # a global BA round ends once a step lowers the c
                                # share of it (local BA's BA_TOL; 0: every iteration)
 GLOBAL_BA_MIN_CORRECTION_M = 0.03    # a global BA follows a loop that moved the keyframe more than
 GLOBAL_BA_MIN_CORRECTION_DEG = 0.5   # this or turned it more than this (RunGlobalBundleAdjustment: always)
-GLOBAL_BA_MAX_KEYFRAMES = 200 # no full BA after a loop in a map of more keyframes: the pose graph
-                               # alone (ORB-SLAM3 LoopClosing: 200)
 GLOBAL_BA_MIN_KF_POINTS = 20   # keyframes seeing fewer points follow their parent in the global BA
 GLOBAL_BA_PROCESS = True       # threads: the global BA solved in a child process (out of the GIL) ...
 GLOBAL_BA_NICE = 10            # ... at this nice increment (it yields the CPU to tracking)
@@ -297,12 +295,9 @@ class LoopClosing:
         """A full BA after a loop only where the loop moved the map by more than
         ``GLOBAL_BA_MIN_CORRECTION_M`` or ``GLOBAL_BA_MIN_CORRECTION_DEG``: a place closed again
         with a correction of millimetres is settled by the pose graph, and a full BA over the
-        whole map would cost seconds for nothing. Never in a map of more than
-        ``GLOBAL_BA_MAX_KEYFRAMES`` keyframes (ORB-SLAM3's rule): its cost grows with the map,
-        the pose graph's far less."""
+        whole map would cost seconds for nothing. (ORB-SLAM3 runs it only in maps of fewer than
+        200 keyframes.)"""
         moved, rot = self.last_correction
-        if len(self.map.good_keyframes()) > GLOBAL_BA_MAX_KEYFRAMES:
-            return False
         return moved > GLOBAL_BA_MIN_CORRECTION_M or rot > GLOBAL_BA_MIN_CORRECTION_DEG
 
     def _gba_abort(self) -> bool:
