@@ -537,6 +537,7 @@ class OrbNode(PoseMapServices):
         # tracking starts before base -> camera is in tf: its results wait here (at most the
         # wait's frames), in a system whose world is the first camera until it is anchored
         self.held = []
+        self.planar_logged = False         # planar motion last reported (on/off)
         self.unanchored = None
         self.clock = ClockWatch()          # ROS time jumping back (bag loop): a new timeline
         self.lock = threading.Lock()
@@ -720,6 +721,12 @@ class OrbNode(PoseMapServices):
                 self.warn("track", "tracking failed on frame %.3f: %r" % (frame.stamp, e),
                           level="err")
                 return
+            planar = getattr(getattr(system, "map", None), "planar", None) is not None
+            if planar != self.planar_logged:
+                rospy.loginfo("pose_node: planar motion %s (planar_motion: %s)" % (
+                    "on: base_link's height, roll and pitch held in map" if planar else "off",
+                    self.tracker_cfg.planar_motion))
+                self.planar_logged = planar
             self.publish(stamp, res)
 
     # ------------------------------------------------------------------ output
@@ -760,7 +767,11 @@ class OrbNode(PoseMapServices):
         if system is None or system is not self.system or getattr(system, "map_loaded", False):
             return np.eye(4)
         old = np.asarray(system.T_map_world, float)
-        system.T_map_world = np.asarray(self.relay.T_base_cam, float).copy()
+        T = np.asarray(self.relay.T_base_cam, float).copy()
+        if hasattr(system, "set_map_frame"):
+            system.set_map_frame(T)
+        else:
+            system.T_map_world = T
         return system.T_map_world @ inv_T(old)
 
     def _publish(self, stamp, res) -> None:

@@ -92,6 +92,12 @@ LOOP_PROXIMITY_TWO_WAY_DEG = 2.0    # agree within this rotation ...
 LOOP_PROXIMITY_TWO_WAY_M = 0.5      # ... and translation (m)
 
 
+LOOP_ODOM_GATE_M = 0.1          # a loop may leave the map this far from the wheel odometry's motion
+LOOP_ODOM_GATE_REL = 0.05       # ... + this x the odometry's path between the two keyframes (m) ...
+LOOP_ODOM_GATE_DEG = 2.0        # ... and turned this far + DEG_PER_M x that path, unless it was farther
+LOOP_ODOM_GATE_DEG_PER_M = 1.5  # before (wheel odometry: a few % of the path, ~1 deg/m of yaw)
+
+
 def _umeyama_batch(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """(H, 4, 4) rigid transforms mapping A[h] (H, n, 3) onto B[h] (batched SVD)."""
     ma, mb = A.mean(1, keepdims=True), B.mean(1, keepdims=True)
@@ -199,6 +205,8 @@ class LoopClosing:
         self.rejected: List[tuple] = []            # (kf, cand, moved m, turned deg, path m)
         self.images: Dict[int, tuple] = {}         # kf id -> (half, quarter) left image (proximity)
         self.proximity_loops: List[tuple] = []     # accepted by the proximity path (kf, cand, inliers)
+        self.odom_checks: List[tuple] = []         # (kf, cand, odometry path m, m and deg off it
+        #                                            before / after the correction, accepted)
         self.proximity_tries = 0                   # proximity verifications run (LK + PnP)
         self.one_way: List[tuple] = []             # refused by the two-way check (kf, cand, m, deg)
         self._exclude: set = set()
@@ -579,9 +587,49 @@ class LoopClosing:
                    2.0 * np.sin(np.radians(rot) / 2.0)) * max(path, 1.0)
         ok = moved <= allowed and rot <= float(LOOP_MAX_ROTATION_DEG)
         self.last_correction = (moved, rot)
+        if ok:
+            ok = self.odometry_agrees(kf, cand, S)
         if not ok:
             self.rejected.append((kf.id, cand.id, moved, rot, path))
         return ok
+
+    def odometry_agrees(self, kf, cand, S) -> bool:
+        """Wheel-odometry check of a loop (True when either keyframe lacks odometry): the motion
+        from ``cand`` to ``kf`` after the correction S may differ from the odometry's by at most
+        LOOP_ODOM_GATE_M + LOOP_ODOM_GATE_REL x the odometry's path between them (translation of
+        the camera) and LOOP_ODOM_GATE_DEG + LOOP_ODOM_GATE_DEG_PER_M x that path, unless it
+        differed more before the correction (the loop then brings the map closer to the
+        odometry). In a weakly textured room a BoW match 2 m away, on far points, fits a
+        transform 0.3 m off, and the loop then moves a map that was right (RTAB-Map rejects such
+        a loop by the odometry links' error after optimization, RGBD/OptimizeMaxError)."""
+        if kf.T_odom_cam is None or cand.T_odom_cam is None:
+            return True
+        odo = inv_T(kf.T_odom_cam) @ cand.T_odom_cam          # T_kf_cand as the wheels saw it
+        before = kf.T_cw @ inv_T(cand.T_cw)
+        after = kf.T_cw @ inv_T(S) @ inv_T(cand.T_cw)
+
+        def off(T):
+            D = inv_T(odo) @ T
+            cos = np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+            return float(np.linalg.norm(D[:3, 3])), float(np.degrees(np.arccos(cos)))
+        path = self._odometry_path(cand, kf)
+        e0, a0 = off(before)
+        e1, a1 = off(after)
+        bound_m = float(LOOP_ODOM_GATE_M) + float(LOOP_ODOM_GATE_REL) * path
+        bound_deg = float(LOOP_ODOM_GATE_DEG) + float(LOOP_ODOM_GATE_DEG_PER_M) * path
+        ok = (e1 <= bound_m or e1 <= e0) and (a1 <= bound_deg or a1 <= a0)
+        self.odom_checks.append((kf.id, cand.id, round(path, 3), round(e0, 3), round(e1, 3),
+                                 round(a0, 2), round(a1, 2), ok))
+        return ok
+
+    def _odometry_path(self, a, b) -> float:
+        """Length of the odometry's camera path from keyframe ``a`` to ``b`` through the good
+        keyframes between them that carry odometry."""
+        mp = self.map
+        P = [k.T_odom_cam[:3, 3] for k in (mp.keyframes.get(i) for i in range(a.id, b.id + 1))
+             if k is not None and (not k.bad or k is a or k is b) and k.T_odom_cam is not None]
+        return float(np.sum(np.linalg.norm(np.diff(np.array(P), axis=0), axis=1))) \
+            if len(P) > 1 else 0.0
 
     def compute_se3(self, kf, cand):
         """World correction S (T_w_w') with cand's points ~ S * kf's points, and matched ids."""

@@ -51,6 +51,11 @@ class KeyFrame:
         self.tex_w = frame.texture_weights(np.arange(frame.N)) \
             if getattr(frame, "texture_tau", 0.0) > 0.0 else None
         self.T_cw = frame.T_cw.copy()
+        # the robot's wheel odometry at this keyframe (T_odom_cam), None without it or once loaded:
+        # a loop correction is checked against it (LoopClosing.odometry_agrees)
+        T_odom_cam = getattr(frame, "T_odom_cam", None)
+        self.T_odom_cam = None if T_odom_cam is None else np.array(T_odom_cam, float)
+        self.planar = None                            # PlanarMotion (Map.new_keyframe) or None
         self.bad = False
         self.parent: Optional["KeyFrame"] = None      # spanning tree (highest covisibility)
         self.T_cp: Optional[np.ndarray] = None        # pose relative to parent once culled
@@ -102,7 +107,8 @@ class KeyFrame:
         return self._grid
 
     def set_pose(self, T_cw: np.ndarray) -> None:
-        self.T_cw = normalize_pose(np.asarray(T_cw, dtype=float))
+        T_cw = normalize_pose(np.asarray(T_cw, dtype=float))
+        self.T_cw = T_cw if self.planar is None else self.planar.project(T_cw)
 
     def stereo_points_world(self, idx: np.ndarray) -> np.ndarray:
         z = self.depth[idx].astype(float)
@@ -150,6 +156,7 @@ class Map:
         self._alloc(capacity)
         self.n_loop_closures = 0
         self.loaded_next_kf_id = 0    # keyframes with smaller ids were loaded (pose.map_io)
+        self.planar = None            # PlanarMotion: every keyframe pose kept on the floor plane
 
     def _alloc(self, cap: int) -> None:
         def grow(name, shape, dtype, fill=0):
@@ -334,6 +341,9 @@ class Map:
     # ---------------------------------------------------------------- keyframes
     def new_keyframe(self, frame) -> KeyFrame:
         kf = KeyFrame(self.next_kf_id, frame)
+        if self.planar is not None:
+            kf.planar = self.planar
+            kf.set_pose(kf.T_cw)
         self.next_kf_id += 1
         self.keyframes[kf.id] = kf
         return kf

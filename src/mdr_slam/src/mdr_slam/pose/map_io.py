@@ -410,6 +410,7 @@ def load_pose_map(system, path: str) -> Dict:
             if name != "lock":
                 setattr(mp, name, value)
         system.T_map_world = got["T_map_world"].copy()
+        system.planar_recheck = True   # the floor plane in the loaded map's frame, at the next frame
         system.request_reset = False
         system.map_loaded = True
         mp.loaded_next_kf_id = mp.next_kf_id   # keyframes below it come from the saved run

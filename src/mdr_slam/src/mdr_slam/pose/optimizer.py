@@ -114,7 +114,7 @@ def _huber_cost(e, info, delta, active):
 def bundle_adjust(Ts: np.ndarray, fixed: np.ndarray, P: np.ndarray, cam_idx: np.ndarray,
                   pt_idx: np.ndarray, obs: np.ndarray, stereo: np.ndarray, info: np.ndarray,
                   intr, iterations: int = 10, lm_lambda: float = 1e-3, abort=None,
-                  tol: float = 0.0, row_w: Optional[np.ndarray] = None):
+                  tol: float = 0.0, row_w: Optional[np.ndarray] = None, planar=None):
     """Robust (Huber) Levenberg-Marquardt bundle adjustment with the Schur complement.
 
     Poses ``Ts`` (C, 4, 4) T_cw (``fixed`` ones held), points ``P`` (M, 3); observations (u, v, uR)
@@ -126,14 +126,16 @@ def bundle_adjust(Ts: np.ndarray, fixed: np.ndarray, P: np.ndarray, cam_idx: np.
     its value (converged: the remaining iterations would move nothing that matters).
     ``row_w`` (n, 3): weights of each observation's u, v and u_R rows in the cost (texture
     weights, :meth:`Frame.texture_weights`); the outlier test stays on the plain chi2.
+    ``planar`` (a :class:`~mdr_slam.pose.planar.PlanarMotion`): the cameras move in the floor's
+    plane only (the Schur system projected on each camera's three planar directions).
     """
     Ts, P, _, _ = _robust_lm(Ts, fixed, P, cam_idx, pt_idx, obs, stereo, info, intr, iterations,
-                             lm_lambda, abort, tol, sparse=False, row_w=row_w)
+                             lm_lambda, abort, tol, sparse=False, row_w=row_w, planar=planar)
     return Ts, P
 
 
 def _robust_lm(Ts, fixed, P, cam_idx, pt_idx, obs, stereo, info, intr, iterations, lm_lambda,
-               abort, tol, sparse, row_w=None):
+               abort, tol, sparse, row_w=None, planar=None):
     """The LM loop of :func:`bundle_adjust` and :func:`bundle_adjust_sparse`: W (6 C x 3 M) as a
     dense array (few cameras: one BLAS product) or as scipy.sparse (many cameras). Returns
     (Ts, P, active observations, residuals at the result)."""
@@ -240,7 +242,14 @@ def _robust_lm(Ts, fixed, P, cam_idx, pt_idx, obs, stereo, info, intr, iteration
                 S4[cam_ar, :, cam_ar, :] += Hcc_d
                 rhs = -bc.ravel() + WVd @ bp.ravel()
                 try:
-                    dc = _solve_spd(S, rhs).reshape(nv, 6)
+                    if planar is None:
+                        dc = _solve_spd(S, rhs).reshape(nv, 6)
+                    else:   # S and rhs on each camera's planar directions: dc = B xi
+                        Bv = np.array([planar.basis(T) for T in Ts[var]])          # (nv, 6, 3)
+                        S3 = np.einsum("iab,iajc,jcd->ibjd", Bv, S4, Bv).reshape(3 * nv, 3 * nv)
+                        xi = _solve_spd(S3, np.einsum("iab,ia->ib", Bv,
+                                                      rhs.reshape(nv, 6)).ravel()).reshape(nv, 3)
+                        dc = np.einsum("iab,ib->ia", Bv, xi)
                 except np.linalg.LinAlgError:
                     lam *= 10
                     continue
@@ -249,7 +258,10 @@ def _robust_lm(Ts, fixed, P, cam_idx, pt_idx, obs, stereo, info, intr, iteration
                 dc = np.zeros((0, 6))
                 dp = -(Vinv @ bp[:, :, None])[:, :, 0]
             Ts_try = Ts.copy()
-            if nv:   # left-multiplied update [exp(phi) | rho] T, all cameras at once
+            if nv and planar is not None:   # exactly in the plane
+                for c, v in enumerate(var):
+                    Ts_try[v] = planar.update(Ts[v], xi[c])
+            elif nv:   # left-multiplied update [exp(phi) | rho] T, all cameras at once
                 dR = Rotation.from_rotvec(dc[:, 3:]).as_matrix()
                 Ts_try[var, :3, :3] = dR @ Ts[var, :3, :3]
                 Ts_try[var, :3, 3] = (dR @ Ts[var, :3, 3][:, :, None])[:, :, 0] + dc[:, :3]
@@ -379,7 +391,8 @@ class Optimizer:
         wx, wy = (1.0, 1.0) if tex is None else (tex[:, 0], tex[:, 1])
         chi2_th = np.where(stereo, CHI2_STEREO, CHI2_MONO)
         delta = np.sqrt(chi2_th)
-        T = frame.T_cw.copy()
+        planar = getattr(map_, "planar", None)   # PlanarMotion: x, y, yaw of the base only
+        T = frame.T_cw.copy() if planar is None else planar.project(frame.T_cw)
         inlier = np.ones(n, dtype=bool)
         fx, fy, cx, cy, bf = frame.fx, frame.fy, frame.cx, frame.cy, frame.bf
         # Jacobian rows (residual = obs - proj, xi = [rho, phi]) as one (6, 3n) array: columns
@@ -452,10 +465,15 @@ class Optimizer:
                     r = np.concatenate([D[:3, 3], _log_so3(D[:3, :3])])
                     g = g + L_prior * r
                 try:
-                    dx = -np.linalg.solve(H + eye6, g)
+                    if planar is None:
+                        dx = -np.linalg.solve(H + eye6, g)
+                        T = _exp_se3_left(dx, T)
+                    else:   # the same normal equations on the plane's three directions
+                        B = planar.basis(T)
+                        dx = -np.linalg.solve(B.T @ (H + eye6) @ B, B.T @ g)
+                        T = planar.update(T, dx)
                 except np.linalg.LinAlgError:
                     break
-                T = _exp_se3_left(dx, T)
                 if np.linalg.norm(dx) < 1e-6:
                     converged = True
                     break
@@ -544,10 +562,13 @@ class Optimizer:
         K0 = kf
         ba_args = (Ts, fixed_mask, pos, cam_idx, pt_idx, obs, stereo, info,
                    (K0.fx, K0.fy, K0.cx, K0.cy, K0.bf), iterations)
+        planar = getattr(map_, "planar", None)
         if worker is not None:
-            Ts_new, pos_new = worker.run(ba_args, {"tol": tol, "row_w": row_w}, abort=abort)
+            Ts_new, pos_new = worker.run(ba_args, {"tol": tol, "row_w": row_w, "planar": planar},
+                                         abort=abort)
         else:
-            Ts_new, pos_new = bundle_adjust(*ba_args, abort=abort, tol=tol, row_w=row_w)
+            Ts_new, pos_new = bundle_adjust(*ba_args, abort=abort, tol=tol, row_w=row_w,
+                                            planar=planar)
         new_pos = pos_new
         new_T = {k.id: inv_T(Ts_new[c]) for c, k in enumerate(kfs)
                  if not fixed_mask[c] and k in local}

@@ -27,6 +27,7 @@ from .local_mapping import LocalMapping
 from .loop_closing import LoopClosing
 from .map import Map
 from .orb import ORBextractor
+from .planar import PlanarMotion
 from .result import TrackResult
 from .tracking import OK, RELOCALIZED, Tracking
 
@@ -69,6 +70,7 @@ class System:
         self.camera = camera
         self.threads = bool(threads)
         self.T_map_world = np.eye(4) if T_map_cam0 is None else np.asarray(T_map_cam0, float)
+        self.T_base_cam = None if T_map_cam0 is None else np.asarray(T_map_cam0, float).copy()
         self.extractor = ORBextractor(self.cfg.n_features, self.cfg.scale_factor, self.cfg.n_levels,
                                       self.cfg.fast_threshold,
                                       min_fast_threshold=self.cfg.min_fast_threshold)
@@ -81,6 +83,7 @@ class System:
         # no new keyframes or points, so a loaded map is used and never changed
         self.localization = False
         self.map_loaded = False    # a saved map was loaded (pose.map_io): never reset it
+        self.planar_recheck = False   # planar_motion decided again at the next frame (a map loaded)
         self._created_before_reset = 0
         # threads: set while no frame is being tracked. LocalMapping and LoopClosing wait for it
         # between their steps and BA iterations (yield_to_tracking): Python runs one thread at a
@@ -107,6 +110,29 @@ class System:
             self.local_mapping.start()
             if self.loop_closing is not None:
                 self.loop_closing.start()
+
+    def set_map_frame(self, T_map_cam0: np.ndarray) -> None:
+        """Put map where ``T_map_cam0`` (T_base_cam) says, once the camera's mount is known after
+        tracking began (see __init__); planar_motion is decided again at the next frame."""
+        self.T_map_world = np.asarray(T_map_cam0, float).copy()
+        self.T_base_cam = self.T_map_world.copy()
+        self.planar_recheck = True
+
+    def planar_wanted(self, frame=None) -> bool:
+        """``planar_motion``: true, false, or auto (true once the frames carry the robot's wheel
+        odometry, ``frame.T_odom_cam``: a wheeled base on a floor). Never without the camera's
+        mount on the base (map is then the first camera's frame, whose plane is not the floor)."""
+        mode = str(self.cfg.planar_motion).lower()
+        if self.T_base_cam is None or mode in ("false", "0", "off", "no"):
+            return False
+        if mode == "auto":
+            return frame is not None and getattr(frame, "T_odom_cam", None) is not None
+        return True
+
+    def make_planar(self, frame=None) -> Optional[PlanarMotion]:
+        """The floor plane for the current T_map_world, or None (:meth:`planar_wanted`)."""
+        return PlanarMotion(self.T_map_world, self.T_base_cam) if self.planar_wanted(frame) \
+            else None
 
     # ------------------------------------------------------------------ hooks
     def loop_closing_insert(self, kf) -> None:
@@ -172,6 +198,14 @@ class System:
         c0 = time.thread_time()
         if self.request_reset:
             self.reset()
+        if self.map.planar is None and (not self.map.keyframes or self.planar_recheck):
+            # decided with a map's first frame (or the first after loading one)
+            self.planar_recheck = False
+            planar = self.make_planar(frame)
+            if planar is not None:
+                self.map.planar = planar
+                for kf in self.map.keyframes.values():
+                    kf.planar = planar
         t_frame = frame.build_ms
         out = self.tracking.track(frame)
         if out["is_keyframe"] and self.loop_closing is not None:   # proximity loop path
