@@ -186,3 +186,58 @@ def test_a_loop_the_wheel_odometry_contradicts_is_refused():
     assert check(stub, cur, cand, shift(-0.5))
     cur.T_odom_cam = None
     assert check(stub, cur, cand, shift(3.0))
+
+
+def test_odometry_edge_jacobians_match_finite_differences():
+    """The relative-pose residual's Jacobians (left updates of both poses) against central
+    differences."""
+    from mdr_slam.pose.optimizer import _relative_pose_terms
+    rng = np.random.default_rng(1)
+    Ts = np.array([_exp_left(rng.normal(0, 0.5, 6), np.eye(4)) for _ in range(2)])
+    Z = _exp_left(np.r_[0.05, -0.02, 0.01, 0.02, -0.01, 0.03], Ts[0] @ inv_T(Ts[1]))
+    edges = (np.array([0]), np.array([1]), Z[None], np.ones((1, 6)))
+    r0, Ji = _relative_pose_terms(Ts, edges)
+    for cam, J in ((0, Ji[0]), (1, -np.eye(6))):
+        num = np.zeros((6, 6))
+        for d in range(6):
+            dx = np.zeros(6)
+            dx[d] = 1e-6
+            Tp, Tm = Ts.copy(), Ts.copy()
+            Tp[cam] = _exp_left(dx, Ts[cam])
+            Tm[cam] = _exp_left(-dx, Ts[cam])
+            num[:, d] = (_relative_pose_terms(Tp, edges)[0][0] -
+                         _relative_pose_terms(Tm, edges)[0][0]) / 2e-6
+        # first order in the residual (r0 is a few cm / degrees): agree to a few percent
+        assert np.abs(num - J).max() < 0.05, (cam, num, J)
+
+
+def test_odometry_edges_hold_what_the_images_leave_free():
+    """Two cameras seeing a handful of points on one small far patch: alone, the BA lets the
+    second camera slide along the patch's ambiguity (lateral shift vs yaw); with a wheel-odometry
+    edge between the two it stays within a few millimetres of the odometry's motion."""
+    from mdr_slam.pose.optimizer import odometry_edges
+    rng = np.random.default_rng(7)
+    truth = [np.eye(4), _exp_left(np.r_[-0.3, 0.0, 0.0, 0.0, 0.0, 0.0], np.eye(4))]
+    P = rng.uniform([-0.15, -0.15, 6.0], [0.15, 0.15, 6.3], size=(12, 3))
+    cam_idx, pt_idx, obs = [], [], []
+    for c, T in enumerate(truth):
+        Pc = P @ T[:3, :3].T + T[:3, 3]
+        for j, X in enumerate(Pc):
+            cam_idx.append(c)
+            pt_idx.append(j)
+            obs.append((FX * X[0] / X[2] + CX, FY * X[1] / X[2] + CY, FX * X[0] / X[2] + CX - BF / X[2]))
+    obs = np.array(obs) + rng.normal(0.0, 0.3, size=(len(obs), 3))
+    start = [truth[0], _exp_left(np.r_[0.04, 0.0, 0.0, 0.0, 0.01, 0.0], truth[1])]
+    kfs = [SimpleNamespace(stamp=float(c), T_odom_cam=inv_T(T)) for c, T in enumerate(truth)]
+    fixed = np.array([True, False])
+    edges = odometry_edges(kfs, fixed)
+    assert edges is not None and len(edges[0]) == 1
+    intr = (FX, FY, CX, CY, BF)
+    args = (np.array(start), fixed, P + rng.normal(0.0, 0.05, size=P.shape), np.array(cam_idx),
+            np.array(pt_idx), obs, np.ones(len(obs), bool), np.ones(len(obs)), intr, 10)
+    err = {}
+    for use in (False, True):
+        Ts, _ = bundle_adjust(*args, pose_edges=edges if use else None)
+        err[use] = float(np.linalg.norm(inv_T(Ts[1])[:3, 3] - inv_T(truth[1])[:3, 3]))
+    print("second camera's error (m), without / with the odometry edge:", err)
+    assert err[True] < 0.01 and err[True] < 0.5 * err[False], err

@@ -28,6 +28,72 @@ __all__ = ["Optimizer", "bundle_adjust", "normalize_pose", "CHI2_MONO", "CHI2_ST
 
 CHI2_MONO = 5.991
 CHI2_STEREO = 7.815
+# wheel odometry between keyframes in the local BA (not in ORB-SLAM2): the motion between two
+# keyframes at most ODOM_EDGE_MAX_GAP_S apart, with sigmas SIGMA_M / SIGMA_DEG + REL x the motion's
+# translation (m) / rotation: a wheeled base is good to a few percent over a keyframe gap
+ODOM_EDGES = True
+ODOM_EDGE_SIGMA_M = 0.01
+ODOM_EDGE_SIGMA_DEG = 0.5
+ODOM_EDGE_SIGMA_REL = 0.05
+ODOM_EDGE_MAX_GAP_S = 5.0
+
+
+def _skew_batch(t: np.ndarray) -> np.ndarray:
+    K = np.zeros(t.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -t[..., 2], t[..., 1], -t[..., 0]
+    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = t[..., 2], -t[..., 1], t[..., 0]
+    return K
+
+
+def _relative_pose_terms(Ts: np.ndarray, edges):
+    """Residuals r (E, 6) = [t, rotvec] of Z^-1 T_i T_j^-1 for ``edges`` (i, j, Z (E, 4, 4),
+    information (E, 6)) and the Jacobians of r w.r.t. the left updates of T_i (J_i) and T_j
+    (-I): J_i = [[R^T, -R^T [t]x], [0, R^T]] for T_i T_j^-1 = [R | t]."""
+    ei, ej, Z, _ = edges
+    Ti, Tj = Ts[ei], Ts[ej]
+    R = Ti[:, :3, :3] @ Tj[:, :3, :3].transpose(0, 2, 1)
+    t = Ti[:, :3, 3] - (R @ Tj[:, :3, 3][:, :, None])[:, :, 0]
+    ZR = Z[:, :3, :3].transpose(0, 2, 1)
+    E_R = ZR @ R
+    E_t = (ZR @ (t - Z[:, :3, 3])[:, :, None])[:, :, 0]
+    r = np.concatenate([E_t, Rotation.from_matrix(E_R).as_rotvec()], axis=1)
+    RT = R.transpose(0, 2, 1)
+    Ji = np.zeros((len(ei), 6, 6))
+    Ji[:, :3, :3] = RT
+    Ji[:, :3, 3:] = -RT @ _skew_batch(t)
+    Ji[:, 3:, 3:] = RT
+    return r, Ji
+
+
+def _edge_cost(Ts, edges) -> float:
+    if edges is None:
+        return 0.0
+    r, _ = _relative_pose_terms(Ts, edges)
+    return float(np.sum(edges[3] * r * r))
+
+
+def odometry_edges(kfs, fixed_mask):
+    """Wheel-odometry edges (i, j, Z, information) between keyframes of ``kfs`` next to each
+    other in time (both with ``T_odom_cam``, at most ODOM_EDGE_MAX_GAP_S apart, not both fixed),
+    or None."""
+    idx = sorted((c for c, k in enumerate(kfs) if getattr(k, "T_odom_cam", None) is not None),
+                 key=lambda c: kfs[c].stamp)
+    ei, ej, Zs, L = [], [], [], []
+    for a, b in zip(idx, idx[1:]):
+        if (fixed_mask[a] and fixed_mask[b]) or \
+                kfs[b].stamp - kfs[a].stamp > float(ODOM_EDGE_MAX_GAP_S):
+            continue
+        Z = inv_T(kfs[a].T_odom_cam) @ kfs[b].T_odom_cam      # T_a T_b^-1 as the wheels saw it
+        st = float(ODOM_EDGE_SIGMA_M) + float(ODOM_EDGE_SIGMA_REL) * float(np.linalg.norm(Z[:3, 3]))
+        sr = np.radians(float(ODOM_EDGE_SIGMA_DEG)) + float(ODOM_EDGE_SIGMA_REL) * float(
+            np.linalg.norm(Rotation.from_matrix(Z[:3, :3]).as_rotvec()))
+        ei.append(a)
+        ej.append(b)
+        Zs.append(Z)
+        L.append([1.0 / st ** 2] * 3 + [1.0 / sr ** 2] * 3)
+    if not ei:
+        return None
+    return np.array(ei), np.array(ej), np.array(Zs), np.array(L)
 
 
 def normalize_pose(T: np.ndarray) -> np.ndarray:
@@ -114,7 +180,8 @@ def _huber_cost(e, info, delta, active):
 def bundle_adjust(Ts: np.ndarray, fixed: np.ndarray, P: np.ndarray, cam_idx: np.ndarray,
                   pt_idx: np.ndarray, obs: np.ndarray, stereo: np.ndarray, info: np.ndarray,
                   intr, iterations: int = 10, lm_lambda: float = 1e-3, abort=None,
-                  tol: float = 0.0, row_w: Optional[np.ndarray] = None, planar=None):
+                  tol: float = 0.0, row_w: Optional[np.ndarray] = None, planar=None,
+                  pose_edges=None):
     """Robust (Huber) Levenberg-Marquardt bundle adjustment with the Schur complement.
 
     Poses ``Ts`` (C, 4, 4) T_cw (``fixed`` ones held), points ``P`` (M, 3); observations (u, v, uR)
@@ -128,14 +195,17 @@ def bundle_adjust(Ts: np.ndarray, fixed: np.ndarray, P: np.ndarray, cam_idx: np.
     weights, :meth:`Frame.texture_weights`); the outlier test stays on the plain chi2.
     ``planar`` (a :class:`~mdr_slam.pose.planar.PlanarMotion`): the cameras move in the floor's
     plane only (the Schur system projected on each camera's three planar directions).
+    ``pose_edges`` (:func:`odometry_edges`): relative-pose terms between cameras (wheel
+    odometry), added to the camera blocks of the Schur system.
     """
     Ts, P, _, _ = _robust_lm(Ts, fixed, P, cam_idx, pt_idx, obs, stereo, info, intr, iterations,
-                             lm_lambda, abort, tol, sparse=False, row_w=row_w, planar=planar)
+                             lm_lambda, abort, tol, sparse=False, row_w=row_w, planar=planar,
+                             pose_edges=pose_edges)
     return Ts, P
 
 
 def _robust_lm(Ts, fixed, P, cam_idx, pt_idx, obs, stereo, info, intr, iterations, lm_lambda,
-               abort, tol, sparse, row_w=None, planar=None):
+               abort, tol, sparse, row_w=None, planar=None, pose_edges=None):
     """The LM loop of :func:`bundle_adjust` and :func:`bundle_adjust_sparse`: W (6 C x 3 M) as a
     dense array (few cameras: one BLAS product) or as scipy.sparse (many cameras). Returns
     (Ts, P, active observations, residuals at the result)."""
@@ -201,6 +271,7 @@ def _robust_lm(Ts, fixed, P, cam_idx, pt_idx, obs, stereo, info, intr, iteration
             _, chi2 = _huber_cost(e, info, delta, active)
             active &= (chi2 <= chi2_th) & (Pc[:, 2] > 0)
         cost, chi2 = robust_cost(e)
+        cost += _edge_cost(Ts, pose_edges)
         s = np.sqrt(np.maximum(chi2, 1e-12))
         w = info * np.where(s > delta, delta / s, 1.0) * active
         Jc, Jl = _pose_point_jacobians(Pc, R, stereo, fx, fy, bf)
@@ -217,6 +288,20 @@ def _robust_lm(Ts, fixed, P, cam_idx, pt_idx, obs, stereo, info, intr, iteration
         bc = sum_cam((JcT @ e[ovi][:, :, None])[:, :, 0])
         Wb = JcT @ Jl[ovi]                                             # (n, 6, 3)
         Jc = Jl = JlT = JcT = None   # not needed by the damped solves: their memory goes first
+        off = []   # (ci, cj, H_ij) of the relative-pose edges between two variable cameras
+        if pose_edges is not None and nv:
+            r_e, Ji = _relative_pose_terms(Ts, pose_edges)
+            L_e = pose_edges[3]
+            JiTL = Ji.transpose(0, 2, 1) * L_e[:, None, :]                  # J_i^T Lambda
+            for k, (a, b) in enumerate(zip(cvar[pose_edges[0]], cvar[pose_edges[1]])):
+                if a >= 0:
+                    Hcc[a] += JiTL[k] @ Ji[k]
+                    bc[a] += JiTL[k] @ r_e[k]
+                if b >= 0:
+                    Hcc[b] += np.diag(L_e[k])
+                    bc[b] -= L_e[k] * r_e[k]
+                if a >= 0 and b >= 0:
+                    off.append((a, b, -JiTL[k]))
         if nv:
             if sparse:
                 Wd = w_csr(Wb)
@@ -240,6 +325,9 @@ def _robust_lm(Ts, fixed, P, cam_idx, pt_idx, obs, stereo, info, intr, iteration
                     S = -(WVd @ Wd.T)
                 S4 = S.reshape(nv, 6, nv, 6)          # a view: add the 6x6 diagonal blocks
                 S4[cam_ar, :, cam_ar, :] += Hcc_d
+                for a, b, Hab in off:
+                    S4[a, :, b, :] += Hab
+                    S4[b, :, a, :] += Hab.T
                 rhs = -bc.ravel() + WVd @ bp.ravel()
                 try:
                     if planar is None:
@@ -268,6 +356,7 @@ def _robust_lm(Ts, fixed, P, cam_idx, pt_idx, obs, stereo, info, intr, iteration
             P_try = P + dp
             nxt = residuals(Ts_try, P_try)
             cost2, _ = robust_cost(nxt[0])
+            cost2 += _edge_cost(Ts_try, pose_edges)
             if cost2 < cost:
                 Ts, P, cur = Ts_try, P_try, nxt
                 lam = max(lam / 3.0, 1e-7)
@@ -563,12 +652,13 @@ class Optimizer:
         ba_args = (Ts, fixed_mask, pos, cam_idx, pt_idx, obs, stereo, info,
                    (K0.fx, K0.fy, K0.cx, K0.cy, K0.bf), iterations)
         planar = getattr(map_, "planar", None)
+        edges = odometry_edges(kfs, fixed_mask) if ODOM_EDGES else None
         if worker is not None:
-            Ts_new, pos_new = worker.run(ba_args, {"tol": tol, "row_w": row_w, "planar": planar},
-                                         abort=abort)
+            Ts_new, pos_new = worker.run(ba_args, {"tol": tol, "row_w": row_w, "planar": planar,
+                                                   "pose_edges": edges}, abort=abort)
         else:
             Ts_new, pos_new = bundle_adjust(*ba_args, abort=abort, tol=tol, row_w=row_w,
-                                            planar=planar)
+                                            planar=planar, pose_edges=edges)
         new_pos = pos_new
         new_T = {k.id: inv_T(Ts_new[c]) for c, k in enumerate(kfs)
                  if not fixed_mask[c] and k in local}
