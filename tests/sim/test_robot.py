@@ -183,29 +183,6 @@ def test_a_wall_stops_the_base_and_is_counted(scenes):
     assert r.n_collisions == 2 and abs(r.yaw - yaw) > 0.5
 
 
-def test_the_bumper_marks_the_wall_the_base_is_pressed_against(scenes):
-    """bumper/points: nothing until the base touches the wall; then points just outside the
-    footprint towards the wall (the blocked motion's side), in the obstacle band; nothing once the
-    base has backed off."""
-    from mdr_slam.sim.robot import BUMPER_Z
-    r = robot(scenes, "office", start_pose="4 3 0", **NO_NOISE)
-    drive(r, 0.5, 0.0, 2.0)
-    assert len(r.bumper_points()) == 0
-    drive(r, 0.5, 0.0, 10.0)
-    P = r.bumper_points()
-    assert r.in_contact and len(P) >= 3
-    # in the map: beyond the footprint's front, at the wall (x = 8) within a few cm
-    wx = r.x + np.cos(r.yaw) * P[:, 0] - np.sin(r.yaw) * P[:, 1]
-    assert np.all(P[:, 0] > r.footprint.radius * 0.7) and np.all(np.abs(wx - 8.0) < 0.06), wx
-    assert np.allclose(P[:, 2], BUMPER_Z) and 0.1 < BUMPER_Z < 1.5
-    drive(r, -0.2, 0.0, 1.0)             # backing off: the contact is over
-    assert len(r.bumper_points()) == 0
-    # reversing into something puts the points behind
-    r2 = robot(scenes, "office", start_pose="4 3 3.14159", **NO_NOISE)
-    drive(r2, -0.3, 0.0, 16.0)
-    assert r2.in_contact and np.all(r2.bumper_points()[:, 0] < 0)
-
-
 def test_a_polygon_footprint_cannot_turn_into_a_wall(scenes):
     square = "[[0.3, 0.3], [-0.3, 0.3], [-0.3, -0.3], [0.3, -0.3]]"
     # 0.35 m from the wall: the square's corners (0.42 m out) sweep into it when turning

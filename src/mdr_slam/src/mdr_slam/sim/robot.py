@@ -43,9 +43,6 @@ __all__ = ["RobotConfig", "DiffDrive", "WheelOdometry", "Footprint", "ObstacleMa
            "ODOM_POSE_COV", "ODOM_TWIST_COV"]
 
 CONTACT_MARGIN = 0.02   # m of clearance that ends a contact (a new collision is then counted)
-BUMPER_SPREAD = np.radians([-40.0, -20.0, 0.0, 20.0, 40.0])   # bumper points either side of the
-BUMPER_OUT = 0.05       # ... blocked motion's direction, this far outside the footprint (m) ...
-BUMPER_Z = 0.3          # ... at this height: inside move_base's obstacle band (0.1-1.5 m)
 LAYOUTS = ("stereo",) + tuple(PROFILES)   # stereo: the simulator bags' topics and frames
 _EPS = 1e-9
 
@@ -532,7 +529,6 @@ class SimRobot:
         self.lateral_commands = 0
         self.collisions: List[Collision] = []
         self.in_contact = False
-        self.contact_heading = 0.0   # rad in base_link: the direction of the blocked motion
         self.distance = 0.0             # m travelled (true)
         self.n_steps = 0
         self.odom_every = max(1, int(round(cfg.physics_rate / cfg.odom_rate)))
@@ -565,8 +561,6 @@ class SimRobot:
                 if not self.in_contact:
                     self.collisions.append(Collision(self.t + dt, self.x, self.y, self.yaw, hit))
                     self.in_contact = True
-                if dx or dy:
-                    self.contact_heading = float(np.arctan2(dy, dx))
                 v = w = dx = dy = dyaw = 0.0
             else:
                 self.x, self.y, self.yaw = nx, ny, nyaw
@@ -598,17 +592,6 @@ class SimRobot:
     def velocity(self) -> Tuple[float, float]:
         """True (v, w) of the base."""
         return self.drive.v, self.drive.w
-
-    def bumper_points(self) -> np.ndarray:
-        """(N, 3) points in base_link where the base is pressed against something (none when it
-        is not): a fan round the blocked motion's direction just outside the footprint, as
-        kobuki_bumper2pc turns a bumper press into a cloud for move_base's obstacle layer, which
-        then keeps a wall the cameras cannot see (blank, specular) out of the robot's plans."""
-        if not self.in_contact:
-            return np.zeros((0, 3))
-        a = self.contact_heading + BUMPER_SPREAD
-        r = self.footprint.radius + BUMPER_OUT
-        return np.column_stack([r * np.cos(a), r * np.sin(a), np.full(len(a), BUMPER_Z)])
 
     @property
     def n_collisions(self) -> int:
