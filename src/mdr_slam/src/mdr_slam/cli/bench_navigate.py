@@ -49,6 +49,12 @@ PLAN_TOPICS = ("move_base/GlobalPlanner/plan", "move_base/NavfnROS/plan")
 MAX_SPEED = 0.4           # m/s: navigation/move_base.yaml's max_vel_x (the 2x-time target)
 
 
+# the robot's own topics (sim_robot.launch, layout stereo) and the pose node's state
+RECORD_TOPICS = ("/stereo/left/image_raw", "/stereo/right/image_raw", "/stereo/left/camera_info",
+                 "/stereo/right/camera_info", "/odom", "/tf", "/tf_static", "/ground_truth/odom",
+                 "/cmd_vel", "/mdr/tracking_state")
+
+
 def _planar(T: np.ndarray):
     return float(T[0, 3]), float(T[1, 3]), float(math.atan2(T[1, 0], T[0, 0]))
 
@@ -303,7 +309,7 @@ def run_scene(args, scene_name: str, out_dir: str) -> dict:
     _h, _p, (x0, y0, _yaw0) = scene_start(scene, cfg.camera_forward)
     goals = sample_goals(tg, (x0, y0), args.goals, args.seed, robot_radius=radius)
     core, env = _roscore(out_dir)
-    launches = []
+    launches, recorder = [], None
     result: dict = {"scene": scene_name, "seed": args.seed, "goals": []}
     try:
         logs = []
@@ -320,6 +326,13 @@ def run_scene(args, scene_name: str, out_dir: str) -> dict:
             launches.append(subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT,
                                              start_new_session=True))
             time.sleep(3.0)   # /use_sim_time is set before the next process starts
+        if getattr(args, "record", False):   # what the robot published: replayed offline later
+            log = open(os.path.join(out_dir, "record.log"), "wb")
+            logs.append(log)
+            recorder = subprocess.Popen(   # not in launches: the stack's CPU and RSS leave it out
+                ["rosbag", "record", "--tcpnodelay", "-O", os.path.join(out_dir, "robot.bag")] +
+                list(RECORD_TOPICS), env=env, stdout=log, stderr=subprocess.STDOUT,
+                start_new_session=True)
         import actionlib
         import rospy
         import tf2_ros
@@ -462,6 +475,7 @@ def run_scene(args, scene_name: str, out_dir: str) -> dict:
                   goals, records)
         return result
     finally:
+        _stop(recorder)   # first: the bag is closed while its topics still flow
         for lp in reversed(launches):
             _stop(lp)
         _stop(core)
@@ -543,6 +557,8 @@ def run_navigate(args) -> int:
             cmd += ["--launch-arg", a]
         for a in getattr(args, "robot_arg", None) or []:
             cmd += ["--robot-arg", a]
+        if getattr(args, "record", False):
+            cmd.append("--record")
         subprocess.call(cmd)
         try:
             with open(os.path.join(out, name, "scene.json")) as f:

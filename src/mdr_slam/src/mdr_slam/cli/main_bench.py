@@ -92,6 +92,9 @@ def add_parser(sub, name, help_text):
                         "seeded goals per scene (default scenes office,corridor,garage)")
     p.add_argument("--goals", type=int, default=10, help="--navigate: goals per scene")
     p.add_argument("--navigate-scene", default=None, help=argparse.SUPPRESS)
+    p.add_argument("--record", action="store_true",
+                   help="--navigate: record the robot's topics (images, camera_info, odom, tf, ground "
+                        "truth) to DIR/SCENE/robot.bag, for scripts/replay_robot_bag.py")
     p.add_argument("--robot-arg", action="append", default=[], metavar="NAME:=VALUE",
                    help="--navigate: an argument for sim_robot.launch (e.g. scale:=1.0)")
     p.add_argument("--compare", action="store_true",
