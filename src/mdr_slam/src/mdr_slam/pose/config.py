@@ -30,6 +30,6 @@ class TrackerConfig(Config):
     ba_process: bool = False        # threads: local BA in a child process (worth it with a spare core)
     loop_closing: bool = True       # detect and close loops (false: odometry with a local map only)
     global_ba: bool = True          # global bundle adjustment after each loop correction
-    planar_motion: Any = "auto"     # a ground robot on a flat floor: base_link's height, roll and pitch held in
-    #                                 map, x, y and yaw solved (RTAB-Map Reg/Force3DoF). auto: when the frames
-    #                                 carry wheel odometry (a wheeled base); true; false (ramps, stairs, hand-held)
+    planar_motion: Any = "false"    # a ground robot on a flat floor: base_link's height, roll and pitch held in
+    #                                 map, x, y and yaw solved (RTAB-Map Reg/Force3DoF): true; auto (when the
+    #                                 frames carry wheel odometry); false (a camera that bobs or pitches, ramps)
