@@ -28,7 +28,9 @@ pytestmark = [pytest.mark.ros, pytest.mark.slow]
 # (1.2-5 % of the path), which says nothing about the input path tested here
 SCENE = "corridor"
 DURATION = 12.0
-PLAY = 0.5           # play rate: full-resolution pairs at 10 Hz wall on a 2-core machine
+# play rate: full-resolution pairs at 8 Hz wall. These tests are about the drivers' formats, not
+# throughput (that is `mdr bench`): at 10 Hz a loaded 2-core machine dropped up to 11 % of the pairs
+PLAY = 0.4
 RATE = 20.0
 
 VARIANTS = {
@@ -182,11 +184,12 @@ def test_driver_bag_through_the_launch_file(variant, driver_bag, rospy_client, s
     # stays valid when no image is tracked. The first image's own stamp comes before its
     # tracking latency; the copies are future-dated by MAP_ODOM_AHEAD, so tf at the current time
     # stays valid while no copy is more than MAP_ODOM_AHEAD after the one before (a loaded
-    # machine delays a timer callback past its tick: CI saw 0.2 s once, at the start)
+    # machine delays a timer callback past its tick: CI saw 0.8 s of wall time once, at the
+    # start, where every node is still loading)
     from mdr_slam.nodes.pose_node import MAP_ODOM_AHEAD
     mo = np.sort(rec["map_odom"])
     assert len(mo) > 1.5 * posed, (len(mo), posed)
-    assert mo[1] - mo[0] < 0.3 + MAP_ODOM_AHEAD, mo[:3]
+    assert mo[1] - mo[0] < 1.2 * PLAY + MAP_ODOM_AHEAD, mo[:3]   # 1.2 s of wall time
     gaps = np.diff(mo[1:][mo[1:] < t_last])
     assert np.max(gaps) <= MAP_ODOM_AHEAD + 1e-6, (np.argmax(gaps), mo[:8])
     # /mdr/odom for robot_localization: the visual pose in map (wheels own odom), covariance,
