@@ -152,8 +152,9 @@ def test_navigation_launch_parses_with_and_without_move_base():
 
 def test_navigation_launch_passes_every_mdr_launch_argument():
     """navigation.launch declares every argument of mdr.launch with the same default and hands it
-    to mdr.launch, so an option of the map nodes works the same with move_base; and roslaunch
-    really applies one (weak_texture, mapping_nice, depth_malloc_arena_max)."""
+    to mdr.launch, so an option of the map nodes works the same with move_base (but planar motion,
+    auto for the ground robot move_base drives); and roslaunch really applies one (weak_texture,
+    mapping_nice, depth_malloc_arena_max, planar_motion)."""
     import xml.etree.ElementTree as ET
 
     def declared(root):
@@ -166,6 +167,7 @@ def test_navigation_launch_passes_every_mdr_launch_argument():
     passed = {a.get("name"): a.get("value") for a in inc[0].findall("arg")}
     missing = sorted(set(want) - set(have))
     other_default = {k: (want[k], have[k]) for k in want if k in have and have[k] != want[k]}
+    assert other_default.pop("planar_motion", None) == ("false", "auto")
     not_passed = sorted(k for k in want if passed.get(k) != "$(arg %s)" % k)
     print("mdr.launch: %d arguments; navigation.launch lacks %s, other defaults %s, not passed %s"
           % (len(want), missing, other_default, not_passed))
@@ -176,7 +178,9 @@ def test_navigation_launch_passes_every_mdr_launch_argument():
                         "weak_texture:=sgbm", "move_base:=true"], capture_output=True, text=True,
                        timeout=60)
     assert r.returncode == 0, r.stderr
-    assert yaml.safe_load(r.stdout)["/depth_node/weak_texture"] == "sgbm"
+    params = yaml.safe_load(r.stdout)
+    assert params["/depth_node/weak_texture"] == "sgbm"
+    assert params["/pose_node/planar_motion"] == "auto"
     r = subprocess.run(["roslaunch", "--args", "depth_node", os.path.join(ROOT, "launch", "navigation.launch"),
                         "mapping_nice:=3"], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and r.stdout.startswith("nice -n 3 "), (r.stdout, r.stderr)
