@@ -1328,6 +1328,19 @@ def test_optical_flow_carries_tracking_over_a_blank_wall(office_blank_wall, monk
     assert ate[False, None] < 0.1, ate      # measured 0.049 m
 
 
+def test_flow_with_no_point_to_follow():
+    """Lucas-Kanade on no point (every shading point behind the camera, say) gives no track
+    instead of OpenCV's error, which dropped the frame live."""
+    import types
+    from mdr_slam.pose.tracking import Tracking
+    img = np.random.default_rng(0).integers(0, 255, (60, 80), dtype=np.uint8)
+    self = types.SimpleNamespace(_lk=lambda: Tracking._lk(None))
+    q, ok = Tracking._flow(self, img, img, np.zeros((0, 2)), np.zeros((0, 2)))
+    assert q.shape == (0, 2) and ok.shape == (0,)
+    q, ok = Tracking._flow(self, img, img, np.array([[40.0, 30.0]]), np.array([[40.0, 30.0]]))
+    assert q.shape == (1, 2) and ok.shape == (1,)
+
+
 def test_flow_pnp_fits_the_tracks_that_pin_both_axes(monkeypatch):
     """The start of office_loop_rotation seed 10 (full resolution, its first 13 frames): the
     camera steps sideways 1.8 cm per frame facing a blank wall whose specular band holds 90 % of

@@ -535,6 +535,8 @@ class Tracking:
         (forward-backward disagreement <= flow_fb_px): (tracked positions, ok mask)."""
         lk = self._lk()
         p0 = np.ascontiguousarray(p0, np.float32).reshape(-1, 1, 2)
+        if not len(p0):   # OpenCV refuses an empty point array
+            return np.zeros((0, 2), np.float32), np.zeros(0, bool)
         q, st, _ = cv2.calcOpticalFlowPyrLK(img0, img1, p0, np.ascontiguousarray(
             p1, np.float32).reshape(-1, 1, 2), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
         b, st2, _ = cv2.calcOpticalFlowPyrLK(img1, img0, q, p0.copy(),
