@@ -28,7 +28,7 @@ class Recorder:
         from geometry_msgs.msg import PoseStamped
         from nav_msgs.msg import Odometry
         from rosgraph_msgs.msg import Clock
-        from sensor_msgs.msg import CameraInfo, Image
+        from sensor_msgs.msg import CameraInfo, Image, PointCloud2
         from std_msgs.msg import UInt32
         from tf2_msgs.msg import TFMessage
         self.lock = threading.Lock()
@@ -40,6 +40,7 @@ class Recorder:
                   "odom": ("odom", Odometry), "gt": ("ground_truth/pose", PoseStamped),
                   "gt_odom": ("ground_truth/odom", Odometry),
                   "collisions": ("collisions", UInt32),
+                  "bumper": ("bumper/points", PointCloud2),
                   "clock": ("/clock", Clock), "tf": ("/tf", TFMessage),
                   "tf_static": ("/tf_static", TFMessage)}
         self.subs = []
@@ -203,7 +204,7 @@ def test_sim_robot_streams_like_a_driver_and_follows_cmd_vel(rospy_client, start
     assert rec.get("collisions")[-1].data == 0
 
 
-def test_a_drive_into_a_wall_is_counted_and_the_base_stops(rospy_client, start_process):
+def test_a_drive_into_a_wall_is_counted_the_base_stops_and_backs_off(rospy_client, start_process):
     rospy = rospy_client
     from geometry_msgs.msg import Twist
     rec = Recorder(rospy, ns="/robot1")
@@ -219,21 +220,31 @@ def test_a_drive_into_a_wall_is_counted_and_the_base_stops(rospy_client, start_p
         _drive(rospy, pub, rec, 0.4, 20.0, until=lambda: rec.get("collisions")[-1].data >= 1)
         assert rec.get("collisions")[-1].data == 1, node.output()[-3000:]
         t_hit = rec.get("clock")[-1].clock.to_sec()
-        x_hit = cv.pose_to_matrix(rec.get("gt_odom")[-1].pose.pose)[0, 3]
-        # pushing on for 2 s of sim time: the base stays where it stopped, one collision
-        t_end = _drive(rospy, pub, rec, 0.4, 2.0)
+        # pushing on for 4 s of sim time: the base backs off 0.15 m regardless, then the
+        # commands drive it into the wall again
+        t_end = _drive(rospy, pub, rec, 0.4, 4.0)
         assert wait_for(lambda: _stamp(rec.get("gt_odom")[-1]) >= t_end, 30)
     finally:
         rec.close()
     out = node.output()
     assert node.proc.poll() is None and "Traceback" not in out, out[-3000:]
-    assert rec.get("collisions")[-1].data == 1
+    assert rec.get("collisions")[-1].data == 2, out[-3000:]
     xs = [(_stamp(m), cv.pose_to_matrix(m.pose.pose)[0, 3]) for m in rec.get("gt_odom")]
     assert max(x for _, x in xs) <= 8.0 - 0.2 + 1e-6          # the footprint never entered
-    after = [x for t, x in xs if t >= t_hit]
-    assert max(after) - min(after) < 0.01 and abs(after[-1] - x_hit) < 0.01, after
-    assert 8.0 - 0.2 - after[-1] < 0.01                       # stopped at the wall
-    assert "collision 1 at" in out and "office_wall_x1" in out
+    after = [x for t, x in xs if t >= t_hit - 0.05]
+    assert 8.0 - 0.2 - max(after) < 0.01                      # stopped at the wall
+    assert max(after) - min(after) == pytest.approx(0.15, abs=0.02), (max(after), min(after))
+    assert "collision 1 at" in out and "collision 2 at" in out and "office_wall_x1" in out
+    # the bumper: nothing before the contact, then points at the wall ahead, in base_link
+    bumps = rec.get("bumper")
+    assert bumps and min(_stamp(m) for m in bumps) >= t_hit - 0.2, [_stamp(m) for m in bumps[:3]]
+    x_at = dict((round(t, 2), x) for t, x in xs)
+    for m in bumps:
+        P = cv.pointcloud2_to_xyz(m)
+        assert m.header.frame_id == "base_link" and len(P) >= 3
+        x = x_at.get(round(_stamp(m), 2))
+        if x is not None:        # at x = 8 in the map, from wherever the base is
+            assert np.all(np.abs(x + P[:, 0] - 8.0) < 0.06), (x, P)
 
 
 def test_wait_for_topic_holds_the_clock_until_the_consumer_caught_up(rospy_client,

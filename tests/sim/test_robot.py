@@ -157,8 +157,8 @@ def test_odometry_noise_grows_with_the_square_root_of_travel():
 
 
 def test_a_wall_stops_the_base_and_is_counted(scenes):
-    # office: base at (4, 3) facing the east wall (x = 8), plain wall at y = 3
-    r = robot(scenes, "office", start_pose="4 3 0", **NO_NOISE)
+    # office: base at (4, 3) facing the east wall (x = 8), plain wall at y = 3; no back-off
+    r = robot(scenes, "office", start_pose="4 3 0", backoff_distance=0.0, **NO_NOISE)
     assert r.n_collisions == 0
     tr = drive(r, 0.5, 0.0, 12.0)        # 3.8 m of floor to the wall, then keep pushing
     assert r.n_collisions == 1, r.collisions
@@ -181,6 +181,57 @@ def test_a_wall_stops_the_base_and_is_counted(scenes):
     yaw = r.yaw
     drive(r, 0.0, 1.0, 1.0)
     assert r.n_collisions == 2 and abs(r.yaw - yaw) > 0.5
+
+
+def test_the_bumper_marks_the_wall_the_base_is_pressed_against(scenes):
+    """bumper/points: nothing until the base touches the wall; then points just outside the
+    footprint towards the wall (the blocked motion's side), in the obstacle band; nothing once the
+    base has backed off."""
+    from mdr_slam.sim.robot import BUMPER_Z
+    r = robot(scenes, "office", start_pose="4 3 0", backoff_distance=0.0, **NO_NOISE)
+    drive(r, 0.5, 0.0, 2.0)
+    assert len(r.bumper_points()) == 0
+    drive(r, 0.5, 0.0, 10.0)
+    P = r.bumper_points()
+    assert r.in_contact and len(P) >= 3
+    # in the map: beyond the footprint's front, at the wall (x = 8) within a few cm
+    wx = r.x + np.cos(r.yaw) * P[:, 0] - np.sin(r.yaw) * P[:, 1]
+    assert np.all(P[:, 0] > r.footprint.radius * 0.7) and np.all(np.abs(wx - 8.0) < 0.06), wx
+    assert np.allclose(P[:, 2], BUMPER_Z) and 0.1 < BUMPER_Z < 1.5
+    drive(r, -0.2, 0.0, 1.0)             # backing off: the contact is over
+    assert len(r.bumper_points()) == 0
+    # reversing into something puts the points behind
+    r2 = robot(scenes, "office", start_pose="4 3 3.14159", backoff_distance=0.0, **NO_NOISE)
+    drive(r2, -0.3, 0.0, 16.0)
+    assert r2.in_contact and np.all(r2.bumper_points()[:, 0] < 0)
+
+
+def test_the_base_backs_off_a_contact_whatever_it_is_commanded(scenes):
+    """The safety back-off: after a contact the base reverses backoff_distance straight away from
+    it at backoff_speed, forward commands ignored meanwhile; the bumper points stay where the wall
+    was while it does; then the commands drive it again (into the wall: a second collision)."""
+    r = robot(scenes, "office", start_pose="4 3 0", **NO_NOISE)
+    assert r.cfg.backoff_distance == pytest.approx(0.15)
+    tr = drive(r, 0.5, 0.0, 8.5)        # 3.8 m to the wall at 0.5 m/s, then 0.9 s pushing
+    assert r.n_collisions == 1
+    x_contact = np.max(tr[:, 2])
+    assert 8.0 - 0.2 - x_contact < 0.01
+    assert r.backoff_left > 0 and r.drive.v < 0 and r.x < x_contact    # reversing, pushed or not
+    P = r.bumper_points()
+    wx = r.x + np.cos(r.yaw) * P[:, 0] - np.sin(r.yaw) * P[:, 1]
+    assert len(P) >= 3 and np.all(np.abs(wx - 8.0) < 0.06), wx
+    tr = drive(r, 0.5, 0.0, 2.0)
+    back = x_contact - np.min(tr[:, 2])
+    assert back == pytest.approx(0.15, abs=0.02), back
+    assert np.all(np.abs(tr[:, 1]) < 1e-9)       # straight back: no turning
+    assert r.n_collisions == 2                   # the commands took over and hit the wall again
+    # reversing into a wall: the back-off is forwards
+    r2 = robot(scenes, "office", start_pose="4 3 3.14159", **NO_NOISE)
+    tr = drive(r2, -0.3, 0.0, 16.0)
+    assert r2.n_collisions >= 1
+    k = np.argmax(tr[:, 2])
+    assert 8.0 - 0.2 - tr[k, 2] < 0.01
+    assert tr[k, 2] - np.min(tr[k:, 2]) == pytest.approx(0.15, abs=0.02)
 
 
 def test_a_polygon_footprint_cannot_turn_into_a_wall(scenes):

@@ -21,6 +21,9 @@ Topics (relative names; ``~layout`` stereo, else a driver's, see mdr_slam.sim.dr
   and tf ``map -> ground_truth_camera``; ``ground_truth/odom`` (base_link in ``map``, true twist);
 - ``collisions`` (std_msgs/UInt32, latched): contacts of the footprint with the scene so far; each
   one stops the base and is logged;
+- ``bumper/points`` (sensor_msgs/PointCloud2 in base_link): while the base is pressed against
+  something or backing off from it (``backoff_distance``), points just outside the footprint
+  where it touched (a bumper, as kobuki_bumper2pc);
 - ``/clock``; ``/diagnostics`` (frames per wall second, render time, real-time factor, collisions).
 """
 from __future__ import annotations
@@ -37,12 +40,13 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, Twist
 from nav_msgs.msg import Odometry
 from rosgraph_msgs.msg import Clock
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import UInt32
 
 from ..config import ConfigError
-from ..conversions import (make_header, matrix_to_pose, matrix_to_pose_stamped,
-                           matrix_to_transform_stamped, model_to_camera_info, numpy_to_image)
+from ..conversions import (arrays_to_pointcloud2, make_header, matrix_to_pose,
+                           matrix_to_pose_stamped, matrix_to_transform_stamped,
+                           model_to_camera_info, numpy_to_image)
 from ..sim.generate import STAMP0
 from ..sim.robot import ODOM_POSE_COV, ODOM_TWIST_COV, RobotConfig, SimRobot
 from .common import Throttled
@@ -119,6 +123,7 @@ class SimRobotNode:
         self.pub_gt = rospy.Publisher("ground_truth/pose", PoseStamped, queue_size=10)
         self.pub_gt_odom = rospy.Publisher("ground_truth/odom", Odometry, queue_size=10)
         self.pub_collisions = rospy.Publisher("collisions", UInt32, queue_size=1, latch=True)
+        self.pub_bumper = rospy.Publisher("bumper/points", PointCloud2, queue_size=2)
         self.pub_clock = rospy.Publisher("/clock", Clock, queue_size=10)
         self.pub_diag = rospy.Publisher("/diagnostics", DiagnosticArray, queue_size=5)
         self.tf = tf2_ros.TransformBroadcaster()
@@ -280,6 +285,10 @@ class SimRobotNode:
             self.frames += 1
             self.render_cpu_ms += (cpu - self.render_cpu_ms) / min(self.frames, 50)
             self.publish_frame(r.t, pair, odometry)
+            bump = r.bumper_points()
+            if len(bump):
+                self.pub_bumper.publish(arrays_to_pointcloud2({}, _time(r.t), cfg.base_frame,
+                                                              xyz=bump))
             # sim time reaches the frame only once it is out
             self.pub_clock.publish(Clock(_time(r.t)))
             self.fps.tick()

@@ -12,6 +12,9 @@ pair of the camera on its mast:
   (walls and box sides project to segments, horizontal faces to areas). A sub-step that would
   overlap one is not taken: the base stops where it was (a bumper stop) and a collision is counted
   once per contact, which ends when the base is ``CONTACT_MARGIN`` clear again;
+- **bumper** (:meth:`SimRobot.bumper_points`) and **safety back-off**: the contact as points just
+  outside the footprint (as kobuki_bumper2pc's cloud), and the base reversing ``backoff_distance``
+  straight away from it, velocity commands ignored meanwhile (as kobuki_safety_controller);
 - **wheel odometry** (:class:`WheelOdometry`): the true increments with systematic errors
   (translation scale, rotation scale, yaw drift per metre, as :mod:`.driver`'s bags) and a seeded
   random walk proportional to the square root of the wheels' travel, so the drift's statistics do
@@ -43,6 +46,9 @@ __all__ = ["RobotConfig", "DiffDrive", "WheelOdometry", "Footprint", "ObstacleMa
            "ODOM_POSE_COV", "ODOM_TWIST_COV"]
 
 CONTACT_MARGIN = 0.02   # m of clearance that ends a contact (a new collision is then counted)
+BUMPER_SPREAD = np.radians([-40.0, -20.0, 0.0, 20.0, 40.0])   # bumper points either side of the
+BUMPER_OUT = 0.05       # ... blocked motion's direction, this far outside the footprint (m) ...
+BUMPER_Z = 0.3          # ... at this height: inside move_base's obstacle band (0.1-1.5 m)
 LAYOUTS = ("stereo",) + tuple(PROFILES)   # stereo: the simulator bags' topics and frames
 _EPS = 1e-9
 
@@ -75,6 +81,8 @@ class RobotConfig(Config):
     cmd_timeout: float = 0.5           # s (sim) without cmd_vel: the command is zero
     footprint_radius: float = 0.2      # m, a circular footprint centred on base_link ...
     footprint: Any = ""                # ... or a polygon "[[x, y], ...]" in base_link (move_base's)
+    backoff_distance: float = 0.15     # m the base reverses after a contact (0: it stays pressed)
+    backoff_speed: float = 0.1         # m/s of that reversing
     body_height: float = 1.5           # m: obstacles up to this height collide (mast included)
     floor_clearance: float = 0.03      # m: surfaces below (mats, lines) do not
     wheel_separation: float = 0.36     # m: the wheels' travel in turns (odometry noise)
@@ -529,6 +537,10 @@ class SimRobot:
         self.lateral_commands = 0
         self.collisions: List[Collision] = []
         self.in_contact = False
+        self.contact_heading = 0.0   # rad in base_link: the direction of the blocked motion
+        self.T_odom_contact = np.eye(4)   # the wheel odometry's base pose at the contact
+        self.backoff_left = 0.0      # m still to reverse (the safety back-off)
+        self.backoff_dir = 0.0       # -1 backwards, +1 forwards
         self.distance = 0.0             # m travelled (true)
         self.n_steps = 0
         self.odom_every = max(1, int(round(cfg.physics_rate / cfg.odom_rate)))
@@ -549,8 +561,12 @@ class SimRobot:
     # --- physics
     def step(self, dt: float) -> None:
         """One physics sub-step of ``dt`` s."""
-        v_cmd, w_cmd = self.cmd if self.t - self.cmd_t <= self.cfg.cmd_timeout + 1e-9 \
-            else (0.0, 0.0)
+        if self.backoff_left > 0:
+            v_cmd, w_cmd = self.backoff_dir * self.cfg.backoff_speed, 0.0
+        elif self.t - self.cmd_t <= self.cfg.cmd_timeout + 1e-9:
+            v_cmd, w_cmd = self.cmd
+        else:
+            v_cmd, w_cmd = 0.0, 0.0
         v, w = self.drive.limited(v_cmd, w_cmd, dt)
         dx, dy, dyaw = DiffDrive.increment(v, w, dt)
         if dx or dy or dyaw:
@@ -558,13 +574,23 @@ class SimRobot:
             hit = self.obstacles.collides(self.footprint, nx, ny, nyaw)
             if hit is not None:
                 # a bumper stop: the base stays where it was, at rest
+                backing = self.backoff_left > 0
+                self.backoff_left = 0.0   # a back-off that hits something ends there
                 if not self.in_contact:
                     self.collisions.append(Collision(self.t + dt, self.x, self.y, self.yaw, hit))
                     self.in_contact = True
+                    if dx or dy:
+                        self.contact_heading = float(np.arctan2(dy, dx))
+                    self.T_odom_contact = self.odom.matrix()
+                    if self.cfg.backoff_distance > 0 and not backing and (dx or dy):
+                        self.backoff_left = float(self.cfg.backoff_distance)
+                        self.backoff_dir = -1.0 if dx >= 0 else 1.0
                 v = w = dx = dy = dyaw = 0.0
             else:
                 self.x, self.y, self.yaw = nx, ny, nyaw
                 self.distance += float(np.hypot(dx, dy))
+                if self.backoff_left > 0:
+                    self.backoff_left -= float(np.hypot(dx, dy))
                 if self.in_contact and self.obstacles.nearest(
                         self.footprint, nx, ny, nyaw, CONTACT_MARGIN)[0] > CONTACT_MARGIN:
                     self.in_contact = False
@@ -592,6 +618,22 @@ class SimRobot:
     def velocity(self) -> Tuple[float, float]:
         """True (v, w) of the base."""
         return self.drive.v, self.drive.w
+
+    def bumper_points(self) -> np.ndarray:
+        """(N, 3) points in base_link where the base touched something, while it is pressed
+        against it or backing off from it (none otherwise): a fan round the blocked motion's
+        direction just outside the footprint at the contact, as
+        kobuki_bumper2pc turns a bumper press into a cloud for move_base's obstacle layer, which
+        then keeps a wall the cameras cannot see (blank, specular) out of the robot's plans."""
+        if not (self.in_contact or self.backoff_left > 0):
+            return np.zeros((0, 3))
+        a = self.contact_heading + BUMPER_SPREAD
+        r = self.footprint.radius + BUMPER_OUT
+        p = np.column_stack([r * np.cos(a), r * np.sin(a), np.full(len(a), BUMPER_Z),
+                             np.ones(len(a))])
+        # where the contact was, seen from where the wheels now say the base is
+        T = np.linalg.solve(self.odom.matrix(), self.T_odom_contact)
+        return (p @ T.T)[:, :3]
 
     @property
     def n_collisions(self) -> int:
