@@ -52,7 +52,9 @@ MAX_SPEED = 0.4           # m/s: navigation/move_base.yaml's max_vel_x (the 2x-t
 # the robot's own topics (sim_robot.launch, layout stereo) and the pose node's state
 RECORD_TOPICS = ("/stereo/left/image_raw", "/stereo/right/image_raw", "/stereo/left/camera_info",
                  "/stereo/right/camera_info", "/odom", "/tf", "/tf_static", "/ground_truth/odom",
-                 "/cmd_vel", "/mdr/tracking_state")
+                 "/cmd_vel", "/mdr/tracking_state", "/move_base/current_goal",
+                 "/move_base/GlobalPlanner/plan", "/move_base/DWAPlannerROS/local_plan",
+                 "/bumper/points")
 
 
 def _planar(T: np.ndarray):
