@@ -576,12 +576,14 @@ class Optimizer:
         return int(np.count_nonzero(inlier))
 
     @staticmethod
-    def pose_from_points(cam, T_cw, uv, ur, octave, inv_level_sigma2, Pw, bad=None, prior=None):
+    def pose_from_points(cam, T_cw, uv, ur, octave, inv_level_sigma2, Pw, bad=None, prior=None,
+                         planar=None):
         """:meth:`pose_optimization` on explicit correspondences (keypoints ``uv``, ``ur``,
         ``octave`` of a frame or keyframe ``cam`` giving fx, fy, cx, cy, bf; world points ``Pw``;
         ``bad`` points are left out), started at ``T_cw``: (refined T_cw, outlier mask, inliers).
         For observations that are not the frame's own map-point matches (a loop's other side,
-        optical-flow tracks)."""
+        optical-flow tracks). ``prior`` and ``planar`` as the frame's and the map's in
+        :meth:`pose_optimization`."""
         class _View:
             pass
         n = len(Pw)
@@ -595,6 +597,7 @@ class Optimizer:
         pts = _View()
         pts.mp_pos = np.asarray(Pw, dtype=float)
         pts.mp_bad = np.zeros(n, bool) if bad is None else np.asarray(bad, bool)
+        pts.planar = planar
         n_inl = Optimizer.pose_optimization(f, pts)
         return f.T_cw, f.outlier, n_inl
 

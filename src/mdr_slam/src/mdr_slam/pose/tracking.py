@@ -495,8 +495,12 @@ class Tracking:
         if vo is None or vo[0] != frame.id or len(vo[3]) < VO_MIN_INLIERS:
             return False
         _, T0, Pw, jb = vo
+        # the wheels' motion and the floor's plane constrain this path as every other one: it
+        # runs where texture is weakest
+        prior, planar = getattr(frame, "prior", None), getattr(self.map, "planar", None)
         T, outlier, n = Optimizer.pose_from_points(frame, T0, frame.uv[jb], frame.ur[jb],
-                                                   frame.octave[jb], frame.inv_level_sigma2, Pw)
+                                                   frame.octave[jb], frame.inv_level_sigma2, Pw,
+                                                   prior=prior, planar=planar)
         if n < VO_MIN_INLIERS:
             return False
         frame.set_pose(T)
@@ -517,7 +521,7 @@ class Tracking:
             P = np.concatenate([self.map.mp_pos[ids], Pw[ok_jb]])
             bad = np.concatenate([self.map.mp_bad[ids], np.zeros(int(ok_jb.sum()), bool)])
             T, out2, n = Optimizer.pose_from_points(frame, T, uv, ur, octv, frame.inv_level_sigma2,
-                                                    P, bad=bad)
+                                                    P, bad=bad, prior=prior, planar=planar)
             if n < VO_MIN_INLIERS:
                 return False
             frame.set_pose(T)
@@ -760,7 +764,8 @@ class Tracking:
             np.concatenate([frame.octave[idx], np.full(m, lv, frame.octave.dtype)]),
             np.append(frame.inv_level_sigma2, float(SHADING_WEIGHT)),
             np.concatenate([self.map.mp_pos[ids], Pw]),
-            bad=np.concatenate([self.map.mp_bad[ids], np.zeros(m, bool)]), prior=prior)
+            bad=np.concatenate([self.map.mp_bad[ids], np.zeros(m, bool)]), prior=prior,
+            planar=getattr(self.map, "planar", None))
         if n_inl < 10:
             return 0
         frame.set_pose(T_cw)
