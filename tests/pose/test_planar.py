@@ -241,3 +241,42 @@ def test_odometry_edges_hold_what_the_images_leave_free():
         err[use] = float(np.linalg.norm(inv_T(Ts[1])[:3, 3] - inv_T(truth[1])[:3, 3]))
     print("second camera's error (m), without / with the odometry edge:", err)
     assert err[True] < 0.01 and err[True] < 0.5 * err[False], err
+
+
+def test_a_tracked_drift_the_wheel_odometry_contradicts_is_refused():
+    """Under planar motion, the pose tracked now against the one about ODOMETRY_WINDOW_S ago
+    (kept on its keyframe) must agree with the wheel odometry's motion in between to 0.1 m + 10 %
+    of the odometry's path: a 1 m straight drive tracked 0.3 m off is refused, 0.05 m off is not,
+    and nothing is checked without planar motion or once a relocalization started anew."""
+    from mdr_slam.pose import tracking as tr
+    kf = SimpleNamespace(bad=False, parent=None, T_cw=np.eye(4))   # the anchor's keyframe
+    T_odom_cam = [make_T(np.eye(3), np.array([0.0, 0.0, 0.1 * i])) for i in range(11)]
+    planar_map = SimpleNamespace(planar=object())
+    t = SimpleNamespace(map=planar_map, state=tr.OK, ref_kf=kf, odom_window=[], records=[])
+
+    def frame(i, err=0.0):
+        # the camera (z forward) drives 0.1 m per frame; err: tracked this far sideways (x)
+        C = np.array([err, 0.0, 0.1 * i])
+        return SimpleNamespace(stamp=0.1 * i, T_odom_cam=T_odom_cam[i],
+                               T_cw=make_T(np.eye(3), -C), mp_ids=np.zeros(3, int))
+    for i in range(5):     # tracked OK, on the odometry: the window fills
+        f = frame(i)
+        t.records.append((f.stamp, kf, f.T_cw @ inv_T(kf.T_cw), False, f.T_cw))
+        tr.Tracking._update_odometry_window(t, f)
+    assert len(t.odom_window) == 5 and t.odom_window[0][0] == 0.0
+    agrees = tr.Tracking.odometry_window_agrees
+    assert agrees(t, frame(10, 0.05))          # 1 m of odometry: 0.2 m allowed
+    assert not agrees(t, frame(10, 0.3))
+    assert not agrees(t, frame(5, 0.2))        # 0.5 m: 0.15 m allowed
+    t.map = SimpleNamespace(planar=None)       # six degrees of freedom: the camera may bob
+    assert agrees(t, frame(10, 0.3))
+    t.map, t.state = planar_map, tr.RELOCALIZED
+    tr.Tracking._update_odometry_window(t, frame(5))
+    assert t.odom_window == [] and agrees(t, frame(10, 0.3))
+    # the window keeps about ODOMETRY_WINDOW_S: its anchor is the newest frame that old
+    t.state = tr.OK
+    for i in range(30):
+        f = SimpleNamespace(stamp=0.1 * i, T_odom_cam=np.eye(4), T_cw=np.eye(4))
+        t.records.append((f.stamp, kf, np.eye(4), False, f.T_cw))
+        tr.Tracking._update_odometry_window(t, f)
+    assert t.odom_window[0][0] == pytest.approx(2.9 - tr.ODOMETRY_WINDOW_S)

@@ -60,6 +60,11 @@ ODOMETRY_GATE_M = 0.5          # a pose (tracked, relocalized) is refused when i
 ODOMETRY_GATE_REL = 0.2        # this + REL x the distance travelled from where the odometry says the
 ODOMETRY_GATE_DEG = 15.0       # robot is, or turned by more than this + DEG_PER_M x that distance
 ODOMETRY_GATE_DEG_PER_M = 3.0  # (wheel odometry drifts a few percent, ~1-2 deg/m; a wrong place is m away)
+ODOMETRY_WINDOW_S = 2.0       # planar motion: the tracked motion over about this long (s) ...
+ODOMETRY_WINDOW_M = 0.10       # ... may differ from the wheel odometry's by this + REL x the odometry's
+ODOMETRY_WINDOW_REL = 0.10     # path (m) and by DEG + DEG_PER_M x that path, else the frame is refused
+ODOMETRY_WINDOW_DEG = 5.0      # (and coasts on the odometry): on weak texture a tracker that follows a
+ODOMETRY_WINDOW_DEG_PER_M = 2.0  # wrongly mapped patch drifts smoothly, under the per-frame gate
 ODOMETRY_COAST_S = 10.0        # ... and this long when the robot's odometry gives the motion (a blank
                                # wall through a turn in place: odometry drifts ~1-2 % over it)
 MOTION_PRIOR_ACC = 4.0         # pose-only optimization pulled toward the constant-velocity prediction with
@@ -99,6 +104,15 @@ def _set_pnp_pose(frame: Frame, rvec, tvec) -> None:
     frame.outlier[:] = False
 
 
+def _on_keyframe(kf, T_c_ref: np.ndarray) -> np.ndarray:
+    """T_cw of a pose kept relative to keyframe ``kf`` (through the parents of a culled one), so
+    it follows the keyframe's corrections (BA, loops)."""
+    while kf.bad and kf.parent is not None:
+        T_c_ref = T_c_ref @ kf.T_cp
+        kf = kf.parent
+    return T_c_ref @ kf.T_cw
+
+
 class Tracking:
     def __init__(self, system, cfg):
         self.system = system
@@ -131,6 +145,9 @@ class Tracking:
         self.n_odom_refused = 0                        # poses (tracked, relocalized) the odometry contradicted
         self.last_odom_refusal = None                  # (stamp, m, deg, m travelled, points) of the last
         self.n_visual_odometry = 0                     # frames the map did not cover (track_visual_odometry)
+        # (stamp, ref kf, T_c_ref, T_odom_cam) of the frames tracked OK lately (planar motion)
+        self.odom_window: List[tuple] = []
+        self.n_odom_window_refused = 0
 
     # ------------------------------------------------------------------ entry
     def track(self, frame: Frame) -> dict:
@@ -187,6 +204,9 @@ class Tracking:
                     # reference keyframe can lock onto a look-alike place as a relocalization can
                     ok = vo = False
                     self.n_odom_refused += 1
+                elif ok and not self.odometry_window_agrees(frame):
+                    ok = vo = False
+                    self.n_odom_window_refused += 1
             prior, frame.prior = frame.prior, None   # relocalization and the keyframe go without it
             if ok:
                 self.refine_on_one_patch(frame, prior)
@@ -219,6 +239,7 @@ class Tracking:
                         not self.system.map_loaded:   # a loaded map is never thrown away
                     self.system.request_reset = True
             self._record(frame, ok)
+            self._update_odometry_window(frame)
             if out["is_keyframe"]:
                 kf, ref = self.ref_kf, self.ref_kf.parent
                 self.kf_records.append((len(self.records) - 1, kf, ref, None if ref is None else
@@ -266,12 +287,54 @@ class Tracking:
         last = self.last_frame
         rec = self.records[-1] if self.records else None
         if rec is not None and rec[1] is not None and not rec[3]:
-            kf = rec[1]
-            T_c_ref = rec[2]
-            while kf.bad and kf.parent is not None:
-                T_c_ref = T_c_ref @ kf.T_cp
-                kf = kf.parent
-            last.set_pose(T_c_ref @ kf.T_cw)
+            last.set_pose(_on_keyframe(rec[1], rec[2]))
+
+    def _update_odometry_window(self, frame: Frame) -> None:
+        """Keep the frames tracked OK in a row (with wheel odometry, under planar motion) that
+        :meth:`odometry_window_agrees` compares against: a relocalization or a reset starts
+        anew; a LOST stretch keeps the last ones (the coasting frames are checked against them)."""
+        if self.state == RELOCALIZED or self.state == NOT_INITIALIZED or \
+                getattr(self.map, "planar", None) is None:
+            self.odom_window = []
+        if self.state != OK or frame.T_odom_cam is None or self.ref_kf is None:
+            return
+        rec = self.records[-1]
+        self.odom_window.append((frame.stamp, rec[1], rec[2], frame.T_odom_cam))
+        # the anchor: the newest entry at least ODOMETRY_WINDOW_S old; older ones go
+        old = [i for i, e in enumerate(self.odom_window)
+               if e[0] <= frame.stamp - float(ODOMETRY_WINDOW_S)]
+        if old:
+            del self.odom_window[:old[-1]]
+
+    def odometry_window_agrees(self, frame: Frame) -> bool:
+        """Under planar motion, the motion tracked since the anchor of :attr:`odom_window` (about
+        ODOMETRY_WINDOW_S ago, or the first of the frames tracked since) against the wheel
+        odometry's over the same time (True without them): within ODOMETRY_WINDOW_M +
+        ODOMETRY_WINDOW_REL x the odometry's path in between and ODOMETRY_WINDOW_DEG +
+        ODOMETRY_WINDOW_DEG_PER_M x that path. On a flat floor with the camera rigidly on the base
+        the odometry is good to a few percent over seconds, while a tracker that follows a wrongly
+        mapped weak-texture patch drifts smoothly, by less per frame than
+        :meth:`odometry_agrees` can tell from the wheels' error. Relocalizations are not checked
+        against it: the window may hold the start of a drift, which the place recognized ends."""
+        if not self.odom_window or frame.T_odom_cam is None or frame.T_cw is None or \
+                getattr(self.map, "planar", None) is None:
+            return True
+        _t, kf, T_c_ref, T_odom_a = self.odom_window[0]
+        if kf is None:
+            return True
+        T_a = _on_keyframe(kf, T_c_ref)
+        pred = inv_T(frame.T_odom_cam) @ T_odom_a @ T_a
+        steps = [e[3][:3, 3] for e in self.odom_window] + [frame.T_odom_cam[:3, 3]]
+        path = float(np.sum(np.linalg.norm(np.diff(np.array(steps), axis=0), axis=1)))
+        D = inv_T(pred) @ frame.T_cw
+        dist = float(np.linalg.norm(inv_T(frame.T_cw)[:3, 3] - inv_T(pred)[:3, 3]))
+        ang = float(np.degrees(np.linalg.norm(Rotation.from_matrix(D[:3, :3]).as_rotvec())))
+        agrees = dist <= float(ODOMETRY_WINDOW_M) + float(ODOMETRY_WINDOW_REL) * path and \
+            ang <= float(ODOMETRY_WINDOW_DEG) + float(ODOMETRY_WINDOW_DEG_PER_M) * path
+        if not agrees:
+            self.last_odom_refusal = (frame.stamp, dist, ang, path,
+                                      int(np.count_nonzero(frame.mp_ids >= 0)))
+        return agrees
 
     def odometry_motion(self, frame: Frame) -> Optional[np.ndarray]:
         """The motion (T_cw(frame) T_cw(last frame)^-1) the robot's odometry measured between
