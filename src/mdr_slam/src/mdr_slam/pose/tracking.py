@@ -147,7 +147,7 @@ class Tracking:
         self.n_visual_odometry = 0                     # frames the map did not cover (track_visual_odometry)
         # (stamp, ref kf, T_c_ref, T_odom_cam) of the frames tracked OK lately (planar motion)
         self.odom_window: List[tuple] = []
-        self.n_odom_window_refused = 0
+        self.n_odom_window_refused = 0                 # of those, by odometry_window_agrees
 
     # ------------------------------------------------------------------ entry
     def track(self, frame: Frame) -> dict:
@@ -206,6 +206,7 @@ class Tracking:
                     self.n_odom_refused += 1
                 elif ok and not self.odometry_window_agrees(frame):
                     ok = vo = False
+                    self.n_odom_refused += 1
                     self.n_odom_window_refused += 1
             prior, frame.prior = frame.prior, None   # relocalization and the keyframe go without it
             if ok:
