@@ -297,7 +297,8 @@ class Tracking:
         if self.state == RELOCALIZED or self.state == NOT_INITIALIZED or \
                 getattr(self.map, "planar", None) is None:
             self.odom_window = []
-        if self.state != OK or frame.T_odom_cam is None or self.ref_kf is None:
+        if self.state != OK or frame.T_odom_cam is None or self.ref_kf is None or \
+                getattr(self.map, "planar", None) is None:
             return
         rec = self.records[-1]
         self.odom_window.append((frame.stamp, rec[1], rec[2], frame.T_odom_cam))
