@@ -170,6 +170,28 @@ def test_route_cells():
     assert g["route"]["occupied_est"] == 0 and "in_range" not in g
 
 
+def test_grid_precision_within_range_of_the_path():
+    # a wall along x at y = 0.525 m; the camera path runs along it, 0.5 m high, x in [0, 2] m
+    gt = _grid_wall(row=10, c0=-200, c1=200)           # x in [-10, 10) m
+    path = _path(0.0, 2.0)
+    far = np.array([[8.025, 3.025, 0.5]])              # a phantom ~6.8 m from the path
+    near = np.array([[1.025, 2.025, 0.5]])             # a phantom 1.5 m from it
+    est = np.vstack([gt[np.abs(gt[:, 0] - 1.0) < 5.0], far])
+    g = grid_metrics(est, gt, path=path, resolution=RES, max_range=4.0)
+    assert g["precision"] < 1.0                        # the far phantom counts in the whole grid
+    rng = g["in_range"]
+    assert rng["precision"] == 1.0 and rng["recall"] == 1.0
+    # the estimated cells within range: those of the wall's points within 4 m of the path
+    in4 = within_range(est, path, 4.0)
+    assert rng["n_est_cells"] == len(obstacle_cells(est[in4], RES)) < g["n_est_cells"]
+    g = grid_metrics(np.vstack([est, near]), gt, path=path, resolution=RES, max_range=4.0)
+    assert g["in_range"]["precision"] == pytest.approx(1 - 1 / (rng["n_est_cells"] + 1))
+    # no estimated point within range: no precision there (None), recall 0
+    g = grid_metrics(far, gt, path=path, resolution=RES, max_range=4.0)
+    assert g["in_range"]["n_est_cells"] == 0 and g["in_range"]["precision"] is None
+    assert g["in_range"]["recall"] == 0.0
+
+
 # ---------------------------------------------------------------------------------- the CLI
 def test_mdr_eval_map_trajectory_and_grid_cli(tmp_path):
     gt = _wall(-10, 12, step=0.05)

@@ -91,8 +91,8 @@ def add_parser(subparsers, name, help_text):
     g.add_argument("est", help="estimated map (PLY or PCD; its 'confidence' field is used)")
     g.add_argument("gt", help="ground-truth cloud (optional per-point 'surface' label)")
     g.add_argument("--trajectory", default=None, metavar="TRAJ",
-                   help="camera path in the map frame (TUM, KITTI or EuRoC): route cells and "
-                        "recall within --max-range")
+                   help="camera path in the map frame (TUM, KITTI or EuRoC): route cells, and "
+                        "recall and precision within --max-range")
     g.add_argument("--max-range", type=float, default=DEFAULT_MAX_RANGE,
                    help="with --trajectory: metres from the path (default %g)" % DEFAULT_MAX_RANGE)
     g.add_argument("--min-confidence", type=int, default=None,

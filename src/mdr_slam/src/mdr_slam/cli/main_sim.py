@@ -1,6 +1,6 @@
 """``mdr sim``: render a simulated stereo sequence with exact ground truth to a bag.
 
-    mdr sim --scene office|corridor|garage|floor [--duration SEC] [--laps N] --out DIR
+    mdr sim --scene office|corridor|garage|floor|atrium [--duration SEC] [--laps N] --out DIR
             [--seed 0] [--rate 20] [--distort]
             [--contrast C] [--no-specular] [--noise S] [--save-depth [EVERY]] [--max-range 8]
             [--driver zed|realsense|stereo_image_proc [--compressed jpeg|png]
@@ -12,9 +12,10 @@ ground_truth_camera. With --driver it holds only what that camera driver and a w
 groundtruth.tum, gt_map.ply and scene.yaml.
 
 --duration is the duration of ONE lap (default 30 s; the floor's ~105 m route: its whole length
-at 0.9 m/s, slower in turns, about 128 s). --laps N drives a loop trajectory (office, garage, floor) N times end
-to end, each later lap on a slightly different path, so the sequence lasts N x duration;
-scene.yaml lists every lap's stamps and frames. A corridor drive is not a loop: --laps refuses it.
+at 0.9 m/s, slower in turns, about 128 s). --laps N drives a loop trajectory (office, garage,
+floor, atrium) N times end to end, each later lap on a slightly different path, so the sequence
+lasts N x duration; scene.yaml lists every lap's stamps and frames. A corridor drive is not a
+loop: --laps refuses it.
 """
 from __future__ import annotations
 
@@ -23,26 +24,29 @@ import time
 
 
 def add_parser(subparsers, name: str = "sim", help_text: str = ""):
+    from ..sim.scene import SCENES   # the scene names (the simulator package: ~0.07 s)
     p = subparsers.add_parser(
         name, help=help_text, description=help_text + ". Writes DIR/sequence.bag, "
         "groundtruth.tum, gt_map.ply, scene.yaml and optionally gt_depth/%%06d.npz.")
-    p.add_argument("--scene", default="office", choices=["office", "corridor", "garage", "floor"],
+    p.add_argument("--scene", default="office", choices=list(SCENES),
                    help="scene (default office; floor: a 32 x 20 m building floor, corridor "
-                        "ring and two rooms, walked along a ~105 m route)")
+                        "ring and two rooms, walked along a ~105 m route; atrium: a 14.6 x "
+                        "12.4 m hall whose faint walls stay 4-5 m from its loop, textured "
+                        "furniture in the middle)")
     p.add_argument("--duration", type=float, default=None,
                    help="seconds of ONE lap (default 30; floor: the whole route at 0.9 m/s, "
                         "slower in turns, ~128 s; a shorter one walks the route's start only)")
     p.add_argument("--laps", type=int, default=1, metavar="N",
                    help="patrol: drive the scene's loop N times end to end, each lap on a "
                         "slightly different path, fresh noise (N x duration seconds; office, "
-                        "garage, floor; default 1)")
+                        "garage, floor, atrium; default 1)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--seed", type=int, default=0, help="scene/trajectory/noise seed (default 0)")
     p.add_argument("--rate", type=float, default=20.0, help="frame rate, Hz (default 20)")
     p.add_argument("--trajectory", default=None,
                    choices=["loop", "pure_rotation", "loop+pure_rotation", "corner", "route"],
                    help="trajectory kind (default: the scene's: office/garage loop+pure_rotation,"
-                        " corridor corner, floor route)")
+                        " corridor corner, floor route, atrium loop)")
     p.add_argument("--distort", action="store_true",
                    help="write RAW images with EuRoC-like radial-tangential distortion; "
                         "camera_info D, K, R, P rectify them")

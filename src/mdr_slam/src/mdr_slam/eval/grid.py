@@ -14,7 +14,9 @@ grids, and the estimate's free cells (0) against the true obstacle cells.
   (Chebyshev distance: one cell of tolerance includes the diagonal neighbours), also per surface
   label (a true cell belongs to every label of a point in it) and, with a camera path, for the true
   cells of the points within ``max_range`` of the path;
-* precision: share of estimated obstacle cells with a true obstacle cell within ``tolerance``;
+* precision: share of estimated obstacle cells with a true obstacle cell within ``tolerance``,
+  also, with a camera path, for the estimated cells of the estimated points within ``max_range``
+  of the path (against ALL true cells, so a cell is not penalised for a wall just beyond range);
 * route: cells the camera's ground projection passes through (the path sampled every quarter
   cell, a footprint of one cell) that the estimated grid marks occupied. The camera went there,
   so an obstacle there is a phantom that would block a planner: it must be 0;
@@ -176,7 +178,9 @@ def grid_metrics(est_xyz: np.ndarray, gt_xyz: np.ndarray, gt_labels: Optional[np
     ``max_gap``, ``raytrace_range``: the node's ``grid_max_gap``, ``grid_raytrace_range`` for
     the estimated grid (the defaults here are off; :func:`grid_params` has the node's).
     ``gt_labels`` (M,) adds per-label recall; ``path`` (a Trajectory or (K, 3) positions in the
-    map frame) adds ``route`` and, with ``max_range``, ``in_range``.
+    map frame) adds ``route`` and, with ``max_range``, ``in_range``: the recall of the true
+    cells of the ground-truth points within ``max_range`` m of the path and the precision of the
+    estimated cells of the estimated points within it.
     """
     est = np.asarray(est_xyz, dtype=np.float64).reshape(-1, 3)
     gt = np.asarray(gt_xyz, dtype=np.float64).reshape(-1, 3)
@@ -225,9 +229,14 @@ def grid_metrics(est_xyz: np.ndarray, gt_xyz: np.ndarray, gt_labels: Optional[np
         if max_range is not None:
             near = within_range(gt, path, max_range)
             true_r = obstacle_cells(gt[near], **kw)
+            # the estimated points' own cells (occupied wins over free in the grid, so they are
+            # cells of est_cells; a gap closed between walls is not a point's cell)
+            est_r = obstacle_cells(est[within_range(est, path, max_range)], **kw)
             rng = OrderedDict([("max_range_m", float(max_range)),
                                ("n_true_cells", int(len(true_r))),
-                               ("recall", _share(cells_near(true_r, est_cells, tolerance)))])
+                               ("recall", _share(cells_near(true_r, est_cells, tolerance))),
+                               ("n_est_cells", int(len(est_r))),
+                               ("precision", _share(cells_near(est_r, true_cells, tolerance)))])
             if labels is not None:
                 rng["per_label"] = _label_recall(gt[near], labels[near], est_cells, kw, tolerance)
             out["in_range"] = rng

@@ -56,7 +56,7 @@ _EPS = 1e-9
 @dataclass
 class RobotConfig(Config):
     """sim_robot_node's parameters (all ROS-free)."""
-    scene: str = "office"              # office | corridor | garage | floor
+    scene: str = "office"              # office | corridor | garage | floor | atrium
     seed: int = 0                      # scene layout and texture, image noise, odometry noise
     contrast: float = 4.0              # texture amplitude of the low-texture surfaces (grey levels)
     specular: bool = True              # the scene's glossy band

@@ -10,7 +10,9 @@ highlight moves with the camera (a reflected line light), which a stereo matcher
 
 Scenes: ``office`` (8 x 6 m room), ``corridor`` (L-shaped, 20 + 19 m), ``garage`` (24 x 16 m
 hall) and ``floor`` (a 32 x 20 m building floor: a corridor ring round a block of rooms, two of
-them open, whose default trajectory is a ~105 m route through both and back to its start).
+them open, whose default trajectory is a ~105 m route through both and back to its start) and
+``atrium`` (a 14.6 x 12.4 m hall whose faint walls stay 4.2-5 m from its loop, beyond the stereo
+rig's convergence range; the texture is on free-standing furniture and rugs in the hall).
 """
 from __future__ import annotations
 
@@ -30,7 +32,7 @@ LABEL_SPECULAR = 3
 LABELS = {LABEL_NONE: "nothing", LABEL_LOW_TEXTURE: "low_texture", LABEL_TEXTURED: "textured",
           LABEL_SPECULAR: "specular"}
 
-SCENES = ("office", "corridor", "garage", "floor")
+SCENES = ("office", "corridor", "garage", "floor", "atrium")
 TILE = 512             # texels per texture tile side (all tiles, so the atlas is arithmetic)
 LIGHTMAP_STEP = 0.1   # m; diffuse shading varies slowly, a coarse baked grid is exact enough
 
@@ -516,6 +518,97 @@ def _garage(b: _Builder, specular: bool):
                                                         "radii": (6.0, 2.8), "height": 1.35}
 
 
+def _atrium(b: _Builder, specular: bool):
+    """An entrance hall (14.6 x 12.4 m, 4 m high) whose four walls are faint (low texture, a few
+    grey levels apart) and FAR: the default loop (radii 3 x 2 m round the centre, looking
+    outwards as the office's) keeps them 4.2 to 5 m away, beyond the stereo rig's ~3.5 m
+    convergence range. Only a door, two signs and a glossy band are on them. The texture a
+    tracker needs stands free in the hall, 2-2.6 m out from the loop, where the outward-looking
+    camera sees it whole (its lowest ray meets the floor ~2 m ahead) and mostly below the walls'
+    view (two clad pillars, two planters with plants, a bench, an information kiosk, a display
+    cabinet), and lies on rugs between them. ``seed`` shuffles, moves and resizes the furniture
+    and the rugs, moves the door and the signs along their walls and changes the wall greys.
+
+    ``params["furniture"]``: the floor-standing boxes' footprints ``(x0, y0, x1, y1, top)``; the
+    loop stays well clear of every one (tests/sim check it for several seeds)."""
+    L, W, H = 14.6, 12.4, 4.0
+    cx, cy = 0.5 * L, 0.5 * W
+    rx, ry = 3.0, 2.0
+    rng = b.rng
+    grey = float(rng.uniform(146.0, 162.0))
+    walls = tuple(grey + float(d) for d in rng.uniform(-6.0, 6.0, 4))
+    b.add_room((0, 0, 0), (L, W, H), wall_base=walls, floor_base=float(rng.uniform(96, 108)),
+               ceil_base=190.0, name="atrium")
+    # the walls: a double door (low texture, darker), two signs, the glossy band
+    yd = float(rng.uniform(3.0, W - 4.8))
+    b.on_wall(0, 0.0, +1, yd, yd + 1.8, 0.0, 2.4, "low", base=112, name="door")
+    xs = float(rng.uniform(2.0, L - 3.0))
+    b.on_wall(1, W, -1, xs, xs + 1.0, 1.6, 2.3, "poster", name="sign_n")
+    ys = float(rng.uniform(2.0, W - 3.0))
+    b.on_wall(0, L, -1, ys, ys + 0.8, 1.5, 2.1, "poster", name="sign_e")
+    if specular:
+        xb = float(rng.uniform(3.0, L - 6.0))
+        b.on_wall(1, 0.0, +1, xb, xb + 3.0, 1.05, 1.7, "spec", name="specular_band",
+                  spec_light=(np.array([xb + 1.5, 2.0, 1.45]), np.array([1.0, 0, 0])))
+    # free-standing furniture round the loop, d m out along the ellipse's outward normal;
+    # each (along the path, across it, height), its long side along the path
+    furniture = []
+    kinds = ["pillar", "planter", "bench", "kiosk", "pillar", "planter", "cabinet"]
+    order = [kinds[i] for i in rng.permutation(len(kinds))]
+    n = len(order)
+    th0 = float(rng.uniform(0, 2 * np.pi))
+
+    def out_point(th, d):
+        nx, ny = ry * np.cos(th), rx * np.sin(th)
+        k = d / np.hypot(nx, ny)
+        return cx + rx * np.cos(th) + k * nx, cy + ry * np.sin(th) + k * ny, nx, ny
+
+    for i, kind in enumerate(order):
+        th = th0 + 2 * np.pi * i / n + float(rng.uniform(-0.12, 0.12))
+        along, across, top = {
+            "pillar": (0.45, 0.45, H),
+            "planter": (float(rng.uniform(0.7, 0.9)),) * 2 + (float(rng.uniform(0.6, 0.8)),),
+            "bench": (float(rng.uniform(1.4, 1.8)), 0.45, 0.45),
+            "kiosk": (0.9, 0.45, float(rng.uniform(1.5, 1.7))),
+            "cabinet": (float(rng.uniform(1.1, 1.4)), 0.5, 0.9)}[kind]
+        d = float(rng.uniform(2.0, 2.6))
+        x, y, nx, ny = out_point(th, d + 0.5 * across)
+        if abs(nx) >= abs(ny):    # the path runs along y here: the long side too
+            hx, hy = 0.5 * across, 0.5 * along
+            inner = "-x" if nx > 0 else "+x"
+        else:
+            hx, hy = 0.5 * along, 0.5 * across
+            inner = "-y" if ny > 0 else "+y"
+        lo, hi = (x - hx, y - hy, 0.0), (x + hx, y + hy, top)
+        if kind == "pillar":      # stone cladding, a poster on the side facing the path
+            b.add_box(lo, hi, kind="noise", base=float(rng.uniform(115, 145)), amp=35,
+                      name="pillar", faces={inner: ("poster", None)})
+        elif kind == "planter":   # stone planter, foliage above it
+            b.add_box(lo, hi, kind="noise", base=140, amp=30, name="planter")
+            plant = float(rng.uniform(1.1, 1.3))
+            b.add_box((x - hx + 0.1, y - hy + 0.1, top), (x + hx - 0.1, y + hy - 0.1, plant),
+                      kind="noise", base=85, amp=50, name="plant")
+            top = plant
+        elif kind == "bench":
+            b.add_box(lo, hi, kind="noise", base=110, amp=35, name="bench")
+        elif kind == "kiosk":     # information kiosk: posters all round
+            b.add_box(lo, hi, kind="poster", base=120, name="kiosk")
+        else:                     # display cabinet: books behind glass on the path's side
+            b.add_box(lo, hi, kind="low", base=140, name="cabinet", faces={inner: ("books", 110)})
+        furniture.append((float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]), float(top)))
+        # a rug between this piece and the next, on the floor the camera sees
+        x, y, nx, ny = out_point(th + np.pi / n, float(rng.uniform(1.9, 2.3)) + 0.5)
+        a, c = float(rng.uniform(1.3, 1.8)), float(rng.uniform(0.9, 1.2))   # along, across
+        hx, hy = (0.5 * c, 0.5 * a) if abs(nx) >= abs(ny) else (0.5 * a, 0.5 * c)
+        b.add_rect((x - hx, y - hy, 0.004), (x + hx, y - hy, 0.004), (x - hx, y + hy, 0.004),
+                   (x, y, 1), kind="noise", base=float(rng.uniform(90, 150)), amp=40,
+                   name="rug")
+    lights = [(np.array([x, y, H - 0.1]), 0.45, 5.0) for x in (0.25 * L, 0.5 * L, 0.75 * L)
+              for y in (0.25 * W, 0.75 * W)]
+    return lights, (np.zeros(3), np.array([L, W, H])), {
+        "center": (cx, cy), "radii": (rx, ry), "height": 1.3, "furniture": furniture}
+
+
 def _wall(b: _Builder, axis: int, coord: float, facing_sign: int, s0: float, s1: float, H: float,
           doors=(), door_h: float = 2.1, base=None, name: str = "wall"):
     """A one-sided wall ``x = coord`` (axis 0) or ``y = coord`` (axis 1) from s0 to s1, facing
@@ -641,12 +734,14 @@ def _floor(b: _Builder, specular: bool):
 
 
 _LAYOUTS = {"office": (_office, "loop+pure_rotation"), "corridor": (_corridor, "corner"),
-            "garage": (_garage, "loop+pure_rotation"), "floor": (_floor, "route")}
+            "garage": (_garage, "loop+pure_rotation"), "floor": (_floor, "route"),
+            "atrium": (_atrium, "loop")}
 
 
 def make_scene(name: str = "office", contrast: float = 4.0, specular: bool = True,
                seed: int = 0) -> Scene:
-    """Build a named scene ('office', 'corridor', 'garage', 'floor'), deterministic for ``seed``.
+    """Build a named scene (``SCENES``: 'office', 'corridor', 'garage', 'floor', 'atrium'),
+    deterministic for ``seed``.
 
     ``contrast`` is the texture amplitude (grey levels, ~std) of the large low-texture surfaces:
     ~2-4 is a painted wall (almost nothing for a stereo matcher), 15+ makes them easy.
