@@ -37,6 +37,7 @@ from ..camera import StereoCamera
 from ..geometry import inv_T, is_valid_T, relative_motion
 from .config import DepthConfig
 from .densify import plane_fill
+from .motion_stereo import MOTION_GRID_STEP, MOTION_MAX_PIXELS, MotionStereo
 
 __all__ = ["DepthFilter", "DepthOutput", "KeyFrameDepth", "render_depth"]
 
@@ -146,6 +147,10 @@ class DepthFilter:
         # unit-depth rays of the grid pixels: P = (rx, ry, 1) * Z (Z = depth along the optical axis)
         self._rx = ((self._u - camera.cx) / camera.fx).astype(np.float32)
         self._ry = ((self._v - camera.cy) / camera.fy).astype(np.float32)
+        gi, gj = np.meshgrid(np.arange(len(us)), np.arange(len(vs)))
+        self._motion_cells = ((gi % MOTION_GRID_STEP == 0) & (gj % MOTION_GRID_STEP == 0)).ravel()
+        self.motion = MotionStereo(camera, self.cfg.max_depth, self.cfg.min_depth) \
+            if self.cfg.motion_stereo and self.cfg.temporal else None
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -155,6 +160,8 @@ class DepthFilter:
         self._planes = []   # densify memory: (n_map, d_map, box_lo, box_hi) per plane, newest last
         self._next_id = 0
         self._last_stamp: Optional[float] = None
+        if getattr(self, "motion", None) is not None:
+            self.motion.reset()
 
     @property
     def keyframe(self) -> Optional[KeyFrameDepth]:
@@ -167,7 +174,10 @@ class DepthFilter:
             return False
         if not is_valid_T(T_map_kf):
             raise ValueError("keyframe pose is not a finite rigid transform")
-        self.kf.T_map_kf = np.array(T_map_kf, dtype=float)
+        T_new = np.array(T_map_kf, dtype=float)
+        if self.motion is not None:
+            self.motion.correct(T_new @ inv_T(self.kf.T_map_kf))
+        self.kf.T_map_kf = T_new
         return True
 
     def correct_keyframe(self, T_old: np.ndarray, T_new: np.ndarray,
@@ -211,7 +221,8 @@ class DepthFilter:
 
         kf = self.kf
         if kf is None:
-            self._new_keyframe(stamp, T_map_cam, Zf, Vf, If, None, keyframe_id, stats)
+            self._new_keyframe(stamp, T_map_cam, Zf, Vf, If, None, keyframe_id, stats,
+                               intensity is not None)
             stats["kf_reason"] = "first"
             return self._output(T_map_cam, True, stats)
 
@@ -230,7 +241,8 @@ class DepthFilter:
             carried = None
             if self.cfg.carry_over:
                 carried = (sel, u, v, zc)
-            self._new_keyframe(stamp, T_map_cam, Zf, Vf, If, carried, keyframe_id, stats)
+            self._new_keyframe(stamp, T_map_cam, Zf, Vf, If, carried, keyframe_id, stats,
+                               intensity is not None)
             return self._output(T_map_cam, True, stats)
 
         # ---- update the keyframe with this frame
@@ -329,7 +341,8 @@ class DepthFilter:
         kf.n_rej[g] = 0
         kf.intensity[g] = Ig
 
-    def _new_keyframe(self, stamp, T_map_cam, Zf, Vf, If, carried, keyframe_id, stats) -> None:
+    def _new_keyframe(self, stamp, T_map_cam, Zf, Vf, If, carried, keyframe_id, stats,
+                      have_image: bool = False) -> None:
         n = len(self._u)
         old = self.kf
         kid = int(keyframe_id) if keyframe_id is not None else self._next_id
@@ -376,6 +389,27 @@ class DepthFilter:
         self._init_pixels(kf, init, Zg[init], Vg[init], Ig[init])
         stats["n_carried"] = n_carried
         stats["n_init"] = int(len(init))
+        if self.motion is not None and have_image:
+            self._motion_update(kf, If.reshape(self.camera.size[1], self.camera.size[0]), stats)
+
+    def _motion_update(self, kf: KeyFrameDepth, grey: np.ndarray, stats) -> None:
+        """Depth from the motion between keyframes (depth/motion_stereo.py) for the new
+        keyframe's hypotheses the rig has not converged, fused as any measurement; then this
+        keyframe's image joins the earlier ones."""
+        with np.errstate(invalid="ignore"):
+            rel = np.sqrt(kf.var) / kf.mu
+            cand = np.flatnonzero(self._motion_cells & np.isfinite(kf.mu) & (kf.mu > 0) &
+                                  ~self._converged(kf))
+        if len(cand) > MOTION_MAX_PIXELS:
+            cand = cand[np.argsort(-rel[cand], kind="stable")[:MOTION_MAX_PIXELS]]
+        idx, y, R = self.motion.measure(kf.T_map_kf, grey, self._u[cand], self._v[cand],
+                                        self._rx[cand], self._ry[cand], kf.mu[cand],
+                                        kf.var[cand], stats)
+        fused: Dict[str, float] = {}
+        if len(idx):
+            self._fuse(kf, cand[idx], y, R, fused)
+        stats["motion_fused"] = int(fused.get("n_updated", 0))
+        self.motion.remember(kf.T_map_kf, grey)
 
     def _project(self, x, y, z):
         c = self.camera
