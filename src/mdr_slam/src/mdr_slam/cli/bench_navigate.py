@@ -89,6 +89,21 @@ def _stop(p, sig=signal.SIGINT, wait=30.0) -> None:
             pass
 
 
+def _run_scene_process(cmd, cleanup_s: float = 60.0) -> int:
+    """Run one scene's process to its end. On Ctrl-C it has had the SIGINT too (same process
+    group) and is stopping its launches, roscore and recorder: wait for that rather than kill it
+    (subprocess.call would SIGKILL it and leave them running), then stop."""
+    p = subprocess.Popen(cmd)
+    try:
+        return p.wait()
+    except KeyboardInterrupt:
+        try:
+            p.wait(cleanup_s)
+        except subprocess.TimeoutExpired:
+            p.kill()
+        raise
+
+
 class _Watch:
     """What the bench hears: true base poses, collisions, grids, global plans."""
 
@@ -561,7 +576,7 @@ def run_navigate(args) -> int:
             cmd += ["--robot-arg", a]
         if getattr(args, "record", False):
             cmd.append("--record")
-        subprocess.call(cmd)
+        _run_scene_process(cmd)
         try:
             with open(os.path.join(out, name, "scene.json")) as f:
                 r = json.load(f)
