@@ -9,7 +9,7 @@ from mdr_slam.pose import System, TrackerConfig
 
 LAPS = 3
 LAP_S = 20.0
-RATE = 20.0
+RATE = 10.0
 
 
 @pytest.fixture(scope="module")

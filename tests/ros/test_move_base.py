@@ -721,6 +721,7 @@ def test_robot_stays_inside_the_global_costmap(explore_run):
 
 # ---------------------------------------------------------------------- live: tf age
 TF_AGE_PLAY = 0.5   # play rate: 2 cores shared with the test's own process under CI load
+TF_AGE_WALL_S = 35.0  # s of wall time sampled (the bag's first 17 s: start, a turn, keyframes)
 @pytest.mark.slow
 def test_live_tf_is_fresh_enough_for_move_base(rospy_client, start_process, sample_bag):
     """The whole stack on the sample bag (tracking, depth, fusion, move_base; no wheel odometry,
@@ -748,7 +749,7 @@ def test_live_tf_is_fresh_enough_for_move_base(rospy_client, start_process, samp
         sub = rospy.Subscriber("/clock", Clock, lambda m: clock.append(m.clock.to_sec()),
                                queue_size=5)
         assert wait_for(lambda: clock, 60, 0.2), launch.output()[-3000:]
-        t_end = time.time() + 60 / TF_AGE_PLAY
+        t_end = time.time() + TF_AGE_WALL_S
         last, moved, t_usage = None, time.time(), 0.0
         while time.time() < t_end:
             time.sleep(0.05)

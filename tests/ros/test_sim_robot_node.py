@@ -260,9 +260,9 @@ def test_wait_for_topic_holds_the_clock_until_the_consumer_caught_up(rospy_clien
                           "wait_for_topic:=consumer", "wait_timeout:=30", "__ns:=lock"],
                          "sim_robot")
     try:
-        assert wait_for(lambda: rec.n("left") >= 1 and pub.get_num_connections() > 0, 120,
-                        0.2), node.output()[-3000:]
-        # no consumer output: the first frame's time is where the clock stays
+        assert wait_for(lambda: rec.n("left") >= 1 and pub.get_num_connections() > 0 and
+                        rec.n("clock") >= 1, 120, 0.2), node.output()[-3000:]
+        # no consumer output: the first frame's time is where the clock stays (and is re-sent)
         rospy.sleep(3.0)
         first = _stamp(rec.get("left")[0])
         assert rec.n("left") == 1 and rec.get("clock")[-1].clock.to_sec() == pytest.approx(first)

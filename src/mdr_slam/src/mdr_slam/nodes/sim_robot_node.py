@@ -53,6 +53,7 @@ from .common import Throttled
 from .health import ProcessHealth, RateWindow
 
 NODE = "sim_robot_node"
+CLOCK_RESEND_S = 0.2    # s between re-sends of a held /clock (late subscribers get it)
 _POSE_COV = [float(v) for v in np.diag(ODOM_POSE_COV).ravel()]
 _TWIST_COV = [float(v) for v in np.diag(ODOM_TWIST_COV).ravel()]
 
@@ -251,16 +252,23 @@ class SimRobotNode:
                 rospy.loginfo("%s: waiting for a subscriber of %s and a publisher of %s", NODE,
                               rospy.resolve_name(self.lay.left_image), self.consumer.name)
             self.pub_clock.publish(Clock(_time(self.robot.t)))
-            time.sleep(0.2)
+            time.sleep(CLOCK_RESEND_S)
 
     def wait_for_consumer(self, t: float) -> None:
+        """Hold the clock at ``t`` until the consumer has answered the frame stamped ``t``,
+        re-sending it (as rosbag play does while paused) for subscribers that connect now."""
         deadline = time.monotonic() + self.cfg.wait_timeout
+        resend = time.monotonic() + CLOCK_RESEND_S
         with self.cv:
             while self.consumer_stamp < t - 1e-6 and not rospy.is_shutdown():
-                rest = deadline - time.monotonic()
+                now = time.monotonic()
+                rest = deadline - now
                 if rest <= 0:
                     self.consumer_timeouts += 1
                     return
+                if now >= resend:
+                    resend = now + CLOCK_RESEND_S
+                    self.pub_clock.publish(Clock(_time(t)))
                 self.cv.wait(min(rest, 0.1))
 
     # --- the loop
