@@ -34,6 +34,7 @@ writes every figure (also the whole-map ones and the in-range low-texture ones) 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import shutil
@@ -103,7 +104,12 @@ def simulate(scene: str, args) -> str:
 def run_variant(scene: str, variant: str, sim_dir: str, args) -> str:
     from mdr_slam.cli import mdr_command
     v = VARIANTS[variant]
-    d = os.path.join(args.work, "%s_%s_%s" % (scene, _tag(args), variant))
+    sets = "_set" + hashlib.sha1(" ".join(args.set).encode()).hexdigest()[:6] \
+        if v["sets"] and args.set else ""
+    d = os.path.join(args.work, "%s_%s%s_%s" % (scene, _tag(args), sets, variant))
+    if args.reuse_runs and os.path.exists(os.path.join(d, "summary.json")):
+        print("  %s: reusing %s" % (scene, d), file=sys.stderr, flush=True)
+        return d
     shutil.rmtree(d, ignore_errors=True)
     argv = mdr_command() + ["run", os.path.join(sim_dir, "sequence.bag"), "--out", d,
                             "--pose-source", v["pose_source"], "--quiet"] + v["argv"]
@@ -260,6 +266,11 @@ def main(argv=None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="NODE.KEY=VALUE",
                     help="mdr run --set for the default and tracked runs (not the baseline); "
                          "repeatable")
+    ap.add_argument("--variants", default=",".join(VARIANTS),
+                    help="comma-separated variants to run (default all: %s)" % ",".join(VARIANTS))
+    ap.add_argument("--reuse-runs", action="store_true",
+                    help="score a run folder that already holds a finished run instead of "
+                         "running it again (its folder name carries the --set options)")
     args = ap.parse_args(argv)
     from mdr_slam.eval.trajectory import read_for_eval
     from mdr_slam.io import cloud_xyz, read_cloud
@@ -292,7 +303,7 @@ def main(argv=None) -> int:
         gt_cloud = read_cloud(os.path.join(sim_dir, "gt_map.ply"))
         gt = (cloud_xyz(gt_cloud), gt_cloud.get("surface"),
               read_for_eval(os.path.join(sim_dir, "groundtruth.tum")))
-        for variant in VARIANTS:
+        for variant in [v for v in args.variants.split(",") if v in VARIANTS]:
             try:
                 d = run_variant(scene, variant, sim_dir, args)
                 res[variant] = score(d, sim_dir, variant, gt, args)

@@ -37,18 +37,19 @@ MOTION_HISTORY = 8              # earlier keyframes kept (smoothed grey image + 
 MOTION_MIN_BASELINE = 0.25      # m across the ray: below it the rig's own stereo does as well
 MOTION_MAX_BASELINE = 2.5       # m: beyond it the two views of a wall look too different
 MOTION_MAX_ANGLE_DEG = 20.0     # deg between the two rays to a point (patch similarity)
-MOTION_GRID_STEP = 2            # search every 2nd filter-grid cell in x and y (cost / 4)
-MOTION_MAX_PIXELS = 6000        # hypotheses searched per keyframe at most (the most uncertain)
+MOTION_GRID_STEP = 2            # search every 2nd filter-grid cell in x and y (cost / 4); the
+#                                 keyframes take turns with the four offsets
+MOTION_MAX_PIXELS = 3000        # hypotheses searched per keyframe at most (the most uncertain)
 MOTION_PATCH = 5                # samples per side of the matching patch ...
 MOTION_PATCH_STEP = 2.0         # ... this many px apart: a 9 px window (faint texture needs area)
 MOTION_BLUR_SIGMA = 1.0         # px, Gaussian pre-smoothing of both images (sensor noise)
-MOTION_SAMPLES = 32             # inverse-depth samples along a segment
+MOTION_SAMPLES = 24             # inverse-depth samples along a segment
 MOTION_MIN_SEGMENT_PX = 4.0     # shorter segment: this view adds little to the hypothesis
-MOTION_MAX_SEGMENT_PX = 64.0    # longer: steps over 2 px would miss the peak
+MOTION_MAX_SEGMENT_PX = 48.0    # longer: steps over 2 px would miss the peak
 MOTION_MIN_ZNCC = 0.8
 MOTION_MIN_MARGIN = 0.1         # best ZNCC minus the best one away from the peak
 MOTION_PEAK_EXCLUSION = 3       # samples either side of the peak that belong to it
-MOTION_VIEWS = 4                # earlier keyframes searched per pixel at most (the widest baselines)
+MOTION_VIEWS = 3                # earlier keyframes searched per pixel at most (the widest baselines)
 MOTION_MIN_VIEWS = 2            # agreeing views a measurement needs
 MOTION_CHI2_AGREE = 6.63        # a view agrees: (rho - median)^2 <= this * (its var + the best var)
 MOTION_MATCH_SIGMA_PX = 0.2     # px, matching error floor of a distinct ZNCC peak ...
@@ -64,20 +65,19 @@ def _smooth(grey: np.ndarray) -> np.ndarray:
 
 
 def _sample(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Bilinear samples of ``img`` at float positions of any shape (cv2.remap, whose maps must
-    stay under 32767 in each dimension: the positions are laid out in rows of 4096)."""
+    """Bilinear samples of ``img`` at float positions (..., P) (cv2.remap, whose maps stay under
+    32767 rows: taken in blocks of rows)."""
     import cv2
     shape = x.shape
-    n = x.size
-    width = 4096
-    rows = max(1, -(-n // width))
-    mx = np.full(rows * width, -10.0, np.float32)
-    my = np.full(rows * width, -10.0, np.float32)
-    mx[:n] = x.ravel()
-    my[:n] = y.ravel()
-    out = cv2.remap(img, mx.reshape(rows, width), my.reshape(rows, width), cv2.INTER_LINEAR,
-                    borderMode=cv2.BORDER_REPLICATE)
-    return out.ravel()[:n].reshape(shape)
+    P = shape[-1]
+    mx = np.ascontiguousarray(x, dtype=np.float32).reshape(-1, P)
+    my = np.ascontiguousarray(y, dtype=np.float32).reshape(-1, P)
+    out = np.empty(mx.shape, np.float32)
+    block = 32000
+    for i in range(0, len(mx), block):
+        out[i:i + block] = cv2.remap(img, mx[i:i + block], my[i:i + block], cv2.INTER_LINEAR,
+                                     borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(shape)
 
 
 def _gradients(img: np.ndarray):
@@ -87,11 +87,15 @@ def _gradients(img: np.ndarray):
 
 
 def _zncc(ref: np.ndarray, cand: np.ndarray) -> np.ndarray:
-    """ZNCC of reference patches (N, P) with candidate patches (N, K, P) -> (N, K)."""
+    """ZNCC of reference patches (N, P) with candidate patches (N, K, P) -> (N, K), from sums
+    (no centred copy of the candidates)."""
+    P = ref.shape[1]
     r = ref - ref.mean(axis=1, keepdims=True)
-    c = cand - cand.mean(axis=2, keepdims=True)
-    num = np.einsum("np,nkp->nk", r, c)
-    den = np.sqrt((r * r).sum(axis=1))[:, None] * np.sqrt((c * c).sum(axis=2))
+    num = np.einsum("np,nkp->nk", r, cand)          # sum r_c * c = sum r_c * (c - mean c)
+    s1 = cand.sum(axis=2)
+    s2 = np.einsum("nkp,nkp->nk", cand, cand)
+    var_c = np.maximum(s2 - s1 * s1 / P, 0.0)
+    den = np.sqrt((r * r).sum(axis=1))[:, None] * np.sqrt(var_c)
     with np.errstate(divide="ignore", invalid="ignore"):
         z = num / den
     return np.where(den > 1e-6, z, -1.0).astype(np.float32)
