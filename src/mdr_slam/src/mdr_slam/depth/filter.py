@@ -149,9 +149,9 @@ class DepthFilter:
         self._rx = ((self._u - camera.cx) / camera.fx).astype(np.float32)
         self._ry = ((self._v - camera.cy) / camera.fy).astype(np.float32)
         gi, gj = np.meshgrid(np.arange(len(us)), np.arange(len(vs)))
-        # the cells each keyframe searches: one of MOTION_GRID_STEP^2 interleaved sub-grids
-        self._motion_phase = ((gj % MOTION_GRID_STEP) * MOTION_GRID_STEP +
-                              gi % MOTION_GRID_STEP).ravel()
+        # the cells motion stereo searches: the same sub-grid in every keyframe, so that what one
+        # keyframe measured is carried into the next and refined there
+        self._motion_cells = ((gi % MOTION_GRID_STEP == 0) & (gj % MOTION_GRID_STEP == 0)).ravel()
         self.motion = MotionStereo(camera, self.cfg.max_depth, self.cfg.min_depth) \
             if self.cfg.motion_stereo and self.cfg.temporal else None
         self.reset()
@@ -402,8 +402,7 @@ class DepthFilter:
         t0 = time.perf_counter()
         with np.errstate(invalid="ignore"):
             rel = np.sqrt(kf.var) / kf.mu
-            phase = self._motion_phase == kf.id % (MOTION_GRID_STEP * MOTION_GRID_STEP)
-            cand = np.flatnonzero(phase & np.isfinite(kf.mu) & (kf.mu > 0) &
+            cand = np.flatnonzero(self._motion_cells & np.isfinite(kf.mu) & (kf.mu > 0) &
                                   ~self._converged(kf))
         if len(cand) > MOTION_MAX_PIXELS:
             cand = cand[np.argsort(-rel[cand], kind="stable")[:MOTION_MAX_PIXELS]]

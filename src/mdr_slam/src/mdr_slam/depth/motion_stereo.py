@@ -37,19 +37,18 @@ MOTION_HISTORY = 8              # earlier keyframes kept (smoothed grey image + 
 MOTION_MIN_BASELINE = 0.25      # m across the ray: below it the rig's own stereo does as well
 MOTION_MAX_BASELINE = 2.5       # m: beyond it the two views of a wall look too different
 MOTION_MAX_ANGLE_DEG = 20.0     # deg between the two rays to a point (patch similarity)
-MOTION_GRID_STEP = 2            # search every 2nd filter-grid cell in x and y (cost / 4); the
-#                                 keyframes take turns with the four offsets
-MOTION_MAX_PIXELS = 3000        # hypotheses searched per keyframe at most (the most uncertain)
+MOTION_GRID_STEP = 2            # search every 2nd filter-grid cell in x and y (cost / 4)
+MOTION_MAX_PIXELS = 6000        # hypotheses searched per keyframe at most (the most uncertain)
 MOTION_PATCH = 5                # samples per side of the matching patch ...
 MOTION_PATCH_STEP = 2.0         # ... this many px apart: a 9 px window (faint texture needs area)
 MOTION_BLUR_SIGMA = 1.0         # px, Gaussian pre-smoothing of both images (sensor noise)
-MOTION_SAMPLES = 24             # inverse-depth samples along a segment
+MOTION_SAMPLES = 32             # inverse-depth samples along a segment
 MOTION_MIN_SEGMENT_PX = 4.0     # shorter segment: this view adds little to the hypothesis
-MOTION_MAX_SEGMENT_PX = 48.0    # longer: steps over 2 px would miss the peak
+MOTION_MAX_SEGMENT_PX = 64.0    # longer: steps over 2 px would miss the peak
 MOTION_MIN_ZNCC = 0.8
 MOTION_MIN_MARGIN = 0.1         # best ZNCC minus the best one away from the peak
 MOTION_PEAK_EXCLUSION = 3       # samples either side of the peak that belong to it
-MOTION_VIEWS = 3                # earlier keyframes searched per pixel at most (the widest baselines)
+MOTION_VIEWS = 4                # earlier keyframes searched per pixel at most (the widest baselines)
 MOTION_MIN_VIEWS = 2            # agreeing views a measurement needs
 MOTION_CHI2_AGREE = 6.63        # a view agrees: (rho - median)^2 <= this * (its var + the best var)
 MOTION_MATCH_SIGMA_PX = 0.2     # px, matching error floor of a distinct ZNCC peak ...
