@@ -91,6 +91,7 @@ def evaluate(cam, frames, params, rate: float) -> dict:
     ngrid = {k: 0 for k in LABEL_NAMES}
     far_err, far_n, far_grid = [], 0, 0
     t_filter = []
+    motion_ms = []
     kfs = set()
     for i, (T, disp, grey, gt, surf, weak) in enumerate(frames):
         Z, var = sd.measurement(disp, grey, weak if use_weak else None)
@@ -98,6 +99,8 @@ def evaluate(cam, frames, params, rate: float) -> dict:
         out = f.process(i / rate, T, Z, var, grey)
         t_filter.append(time.perf_counter() - t0)
         kfs.add(out.keyframe_id)
+        if "motion_ms" in out.stats:
+            motion_ms.append(out.stats["motion_ms"])
         gsurf = surf[::s, ::s]
         ggt = gt[::s, ::s]
         for k in LABEL_NAMES:
@@ -127,6 +130,7 @@ def evaluate(cam, frames, params, rate: float) -> dict:
     res["far"] = _summ(np.concatenate(far_err) if far_err else np.zeros(0), far_n, far_grid)
     res["filter_ms_median"] = 1e3 * float(np.median(t_filter[1:])) if len(t_filter) > 1 else 0.0
     res["keyframes"] = len(kfs)
+    res["motion_ms"] = motion_ms
     return res
 
 
@@ -249,6 +253,10 @@ def main(argv=None):
             r = evaluate(cam, frames, p, a.rate)
             rows.append(_row(scene, name + (" (%d kf)" % r["keyframes"] if p.temporal else ""), r))
             print(rows[-1], flush=True)
+            if r["motion_ms"]:
+                print("  %s %s: motion stereo %.0f ms median, %.0f ms max per keyframe (%d)" % (
+                    scene, name, np.median(r["motion_ms"]), max(r["motion_ms"]),
+                    len(r["motion_ms"])), flush=True)
     print()
     print("columns per label (far: true depth > %.1f m): depth RMSE (m), share |err| > 5 cm, density "
           "(published / grid pixels with a surface); ms = filter median per frame" % FAR)
