@@ -42,12 +42,15 @@ MOTION_MAX_PIXELS = 6000        # hypotheses searched per keyframe at most (the 
 MOTION_PATCH = 5                # samples per side of the matching patch ...
 MOTION_PATCH_STEP = 2.0         # ... this many px apart: a 9 px window (faint texture needs area)
 MOTION_BLUR_SIGMA = 1.0         # px, Gaussian pre-smoothing of both images (sensor noise)
-MOTION_SAMPLES = 32             # inverse-depth samples along a segment
+MOTION_STEP_PX = 2.0            # px between inverse-depth samples along a segment (the ZNCC peak of a
+                                # 9 px window is wider) ...
+MOTION_MIN_SAMPLES = 8          # ... at least this many samples (short segments)
+MOTION_SAMPLES = 32             # ... at most this many (MOTION_MAX_SEGMENT_PX / MOTION_STEP_PX)
 MOTION_MIN_SEGMENT_PX = 4.0     # shorter segment: this view adds little to the hypothesis
 MOTION_MAX_SEGMENT_PX = 64.0    # longer: steps over 2 px would miss the peak
 MOTION_MIN_ZNCC = 0.8
 MOTION_MIN_MARGIN = 0.1         # best ZNCC minus the best one away from the peak
-MOTION_PEAK_EXCLUSION = 3       # samples either side of the peak that belong to it
+MOTION_PEAK_EXCLUSION_PX = 4.0  # px either side of the peak that belong to it
 MOTION_VIEWS = 4                # earlier keyframes searched per pixel at most (the widest baselines)
 MOTION_MIN_VIEWS = 2            # agreeing views a measurement needs
 MOTION_CHI2_AGREE = 6.63        # a view agrees: (rho - median)^2 <= this * (its var + the best var)
@@ -241,22 +244,36 @@ class MotionStereo:
         return (g * g).mean(axis=1)
 
     def _search(self, Tr, img, ref, rx, ry, lo, hi, length, A, g2):
-        """Best inverse depth (NaN when no distinct interior peak) and its variance."""
-        K = MOTION_SAMPLES
+        """Best inverse depth (NaN when no distinct interior peak) and its variance. Samples are
+        MOTION_STEP_PX apart along each segment: pixels are searched in groups of the same
+        number of samples."""
+        K = np.clip(np.ceil(length / MOTION_STEP_PX).astype(np.int64) + 1, MOTION_MIN_SAMPLES,
+                    MOTION_SAMPLES)
+        K = np.minimum(-(-K // 4) * 4, MOTION_SAMPLES)        # a few group sizes, not one per K
+        out = np.full(len(ref), np.nan, np.float32)
+        rvar = np.full(len(ref), np.inf, np.float32)
+        for k in np.unique(K):
+            m = np.flatnonzero(K == k)
+            out[m], rvar[m] = self._search_k(int(k), Tr, img, ref[m], rx[m], ry[m], lo[m], hi[m],
+                                             length[m], A[:, m], g2[m])
+        return out, rvar
+
+    def _search_k(self, K, Tr, img, ref, rx, ry, lo, hi, length, A, g2):
+        """:meth:`_search` for pixels searched with ``K`` samples."""
         s = np.linspace(0.0, 1.0, K, dtype=np.float32)
         rho = lo[:, None] + (hi - lo)[:, None] * s[None, :]           # (M, K)
         uc, vc, _ = self._project(Tr, rx[:, None], ry[:, None], rho)
         pu = uc[:, :, None] + (A[0][:, None, None] * self._ou + A[1][:, None, None] * self._ov)
         pv = vc[:, :, None] + (A[2][:, None, None] * self._ou + A[3][:, None, None] * self._ov)
-        cost = _zncc(ref, _sample(img, pu, pv))                        # (M, K)
         M = len(ref)
-        k = np.argmax(cost, axis=1)
         ar = np.arange(M)
+        cost = _zncc(ref, _sample(img, pu, pv))                        # (M, K)
+        k = np.argmax(cost, axis=1)
         c0 = cost[ar, k]
-        far = np.abs(np.arange(K)[None, :] - k[:, None]) > MOTION_PEAK_EXCLUSION
+        excl = np.ceil(MOTION_PEAK_EXCLUSION_PX * (K - 1) / np.maximum(length, 1e-6))
+        far = np.abs(np.arange(K)[None, :] - k[:, None]) > excl[:, None]
         c_other = np.where(far, cost, -1.0).max(axis=1)
-        good = (c0 >= MOTION_MIN_ZNCC) & (c0 - c_other >= MOTION_MIN_MARGIN) & (k > 0) & \
-            (k < K - 1)
+        good = (c0 >= MOTION_MIN_ZNCC) & (c0 - c_other >= MOTION_MIN_MARGIN) & (k > 0) & (k < K - 1)
         km, kp = np.maximum(k - 1, 0), np.minimum(k + 1, K - 1)
         cm, cp = cost[ar, km], cost[ar, kp]
         den = cm - 2 * c0 + cp
