@@ -91,6 +91,38 @@ def test_a_faint_far_wall_is_measured_where_it_can_be_and_within_its_uncertainty
     assert np.median(np.abs(z)) < 0.9
 
 
+def test_segments_of_different_lengths_are_each_measured_at_their_own_depth():
+    """Hypotheses of different certainty (segments of 10-60 px: searched with different numbers
+    of samples) on a wall seen obliquely (depths 5-9.6 m across the image): every measurement is
+    its own pixel's depth, whatever group it was searched in."""
+    from scipy.spatial.transform import Rotation
+    rng = np.random.default_rng(11)
+    cam = camera()
+    tex = texture(rng, amplitude=40.0)
+    R = Rotation.from_euler("y", 25.0, degrees=True).as_matrix()
+    ms = MotionStereo(cam, max_depth=20.0, min_depth=0.3)
+    for x in (0.0, 0.4, 0.8):
+        T = make_T(R, [x, 0.0, 0.0])
+        ms.remember(T, render(cam, T, tex, rng))
+    T_kf = make_T(R, [1.2, 0.0, 0.0])
+    u, v, rx, ry = grid(cam)
+    rz = R[2, 0] * rx + R[2, 1] * ry + R[2, 2]
+    rho_true = (rz / (WALL_Z - T_kf[2, 3])).astype(np.float32)     # 1 / depth along the axis
+    assert 1 / rho_true.max() < 5.5 and 1 / rho_true.min() > 9.0
+    rel_sigma = np.linspace(0.03, 0.15, len(u)).astype(np.float32)
+    rng.shuffle(rel_sigma)
+    mu = (rho_true * (1 + rel_sigma * rng.uniform(-1, 1, len(u)))).astype(np.float32)
+    var = ((rel_sigma * mu) ** 2).astype(np.float32)
+    stats = {}
+    idx, y, Rv = ms.measure(T_kf, render(cam, T_kf, tex, rng), u, v, rx, ry, mu, var, stats)
+    assert len(idx) > 0.6 * len(u), stats
+    assert len(np.unique(np.round(rel_sigma[idx], 2))) > 5         # short and long segments
+    rel_err = np.abs(y - rho_true[idx]) / rho_true[idx]
+    assert np.median(rel_err) < 0.01 and np.percentile(rel_err, 99) < 0.05
+    z = (y - rho_true[idx]) / np.sqrt(Rv)
+    assert np.mean(np.abs(z) > 3) < 0.03
+
+
 def test_a_blank_wall_gives_no_measurement():
     rng = np.random.default_rng(4)
     idx, y, R, rho_true, stats, n = searched(0.0, rng)     # sensor noise only
