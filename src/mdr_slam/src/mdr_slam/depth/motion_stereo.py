@@ -42,8 +42,8 @@ MOTION_MAX_PIXELS = 6000        # hypotheses searched per keyframe at most (the 
 MOTION_PATCH = 5                # samples per side of the matching patch ...
 MOTION_PATCH_STEP = 2.0         # ... this many px apart: a 9 px window (faint texture needs area)
 MOTION_BLUR_SIGMA = 1.0         # px, Gaussian pre-smoothing of both images (sensor noise)
-MOTION_STEP_PX = 2.0            # px between inverse-depth samples along a segment (the ZNCC peak of a
-                                # 9 px window is wider) ...
+MOTION_STEP_PX = 2.0            # px between inverse-depth samples along a segment (the ZNCC
+                                # peak of a 9 px window is wider) ...
 MOTION_MIN_SAMPLES = 8          # ... at least this many samples (short segments)
 MOTION_SAMPLES = 32             # ... at most this many (MOTION_MAX_SEGMENT_PX / MOTION_STEP_PX)
 MOTION_MIN_SEGMENT_PX = 4.0     # shorter segment: this view adds little to the hypothesis
@@ -273,7 +273,8 @@ class MotionStereo:
         excl = np.ceil(MOTION_PEAK_EXCLUSION_PX * (K - 1) / np.maximum(length, 1e-6))
         far = np.abs(np.arange(K)[None, :] - k[:, None]) > excl[:, None]
         c_other = np.where(far, cost, -1.0).max(axis=1)
-        good = (c0 >= MOTION_MIN_ZNCC) & (c0 - c_other >= MOTION_MIN_MARGIN) & (k > 0) & (k < K - 1)
+        good = (c0 >= MOTION_MIN_ZNCC) & (c0 - c_other >= MOTION_MIN_MARGIN) & (k > 0) & \
+            (k < K - 1)
         km, kp = np.maximum(k - 1, 0), np.minimum(k + 1, K - 1)
         cm, cp = cost[ar, km], cost[ar, kp]
         den = cm - 2 * c0 + cp
