@@ -24,9 +24,9 @@ __all__ = ["limit_openmp_threads", "VoxelMap", "VoxelMapConfig", "IntegrationSta
 def limit_openmp_threads(n: int = 1) -> bool:
     """Ask Open3D's OpenMP runtime for ``n`` threads (must run before ``open3d`` is imported).
 
-    Every Open3D hash-map call is an OpenMP parallel region; on a CPU shared with the pose and
-    depth nodes, idle-spinning worker threads make even a 10-key lookup cost ~10 ms, while one
-    thread does the same lookup in microseconds (the paper's nodes each get about one core).
+    Open3D runs only for the mesh (TSDF integration and extraction); its OpenMP worker threads
+    spin idle on a CPU shared with the pose and depth nodes (the paper's nodes each get about one
+    core), and each of its small calls then costs milliseconds.
     Returns False when Open3D was already loaded (then the setting has no effect); an
     OMP_NUM_THREADS set by the user is kept.
     """

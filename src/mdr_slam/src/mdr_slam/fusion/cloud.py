@@ -12,7 +12,6 @@ import numpy as np
 __all__ = ["normal_bins", "voxel_downsample", "grid_normals"]
 
 _PACK_OFFSET = 2 ** 20  # voxel indices are packed in 21 bits per axis: |index| < 2^20
-_KEY_LIMIT = 2 ** 20
 
 
 def normal_bins(normals: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:

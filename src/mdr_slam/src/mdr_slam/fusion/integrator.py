@@ -13,7 +13,8 @@ from typing import Optional
 import numpy as np
 
 from ..geometry import is_valid_T, transform_points
-from .cloud import _KEY_LIMIT, grid_normals, normal_bins, voxel_downsample
+from .cloud import grid_normals, normal_bins, voxel_downsample
+from .hash_map import KEY_LIMIT
 
 __all__ = ["VoxelIntegrator", "IntegrationStats"]
 
@@ -74,7 +75,7 @@ class VoxelIntegrator:
                 return st
             ok &= np.isfinite(w) & (w > 0)
         Pw = transform_points(T, P[ok])
-        ok_range = np.all(np.abs(Pw) < (_KEY_LIMIT - 2) * self.voxel_size, axis=1)
+        ok_range = np.all(np.abs(Pw) < (KEY_LIMIT - 2) * self.voxel_size, axis=1)
         Pw = Pw[ok_range]
         st["n_valid"] = len(Pw)
         if len(Pw) == 0:

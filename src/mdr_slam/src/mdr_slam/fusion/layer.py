@@ -1,7 +1,7 @@
 """Storage of the voxel map (voxblox's ``Layer``): the slot arrays, the key -> slot hash, growth.
 
 Map points live in flat numpy arrays ("slots", structure of arrays, capacity doubled when full);
-Open3D's ``open3d.core.HashMap`` maps a key ``(ix, iy, iz, nbin)`` to its slot (see
+a :class:`~mdr_slam.fusion.hash_map.KeyHash` maps a key ``(ix, iy, iz, nbin)`` to its slot (see
 :mod:`mdr_slam.fusion.voxel_map` for the data layout). :class:`VoxelLayer` is a mixin of
 :class:`~mdr_slam.fusion.voxel_map.VoxelMap`: it holds the batch hash operations, slot allocation,
 the fold of one map point into another and the read-outs of the live points; the parameters
@@ -12,6 +12,8 @@ from __future__ import annotations
 from collections import OrderedDict
 
 import numpy as np
+
+from .hash_map import KeyHash, pack_keys
 
 __all__ = ["VoxelLayer"]
 
@@ -38,11 +40,7 @@ class VoxelLayer:
 
     def _reset_storage(self) -> None:
         """Empty hash and slot arrays (the storage part of :meth:`VoxelMap.reset`)."""
-        import open3d.core as o3c
-        self._o3c = o3c
-        self._hash = o3c.HashMap(self._initial_capacity, key_dtype=o3c.int32,
-                                 key_element_shape=(4,), value_dtypes=[o3c.int32],
-                                 value_element_shapes=[(1,)], device=o3c.Device("CPU:0"))
+        self._hash = KeyHash(2 * self._initial_capacity)
         self._cap = 0
         self._a = {}
         self._grow(self._initial_capacity)
@@ -83,31 +81,21 @@ class VoxelLayer:
         self._top += rest
         return slots.astype(np.int64)
 
-    def _tensor(self, a: np.ndarray):
-        return self._o3c.Tensor.from_numpy(np.ascontiguousarray(a, dtype=np.int32))
-
     def _find(self, keys: np.ndarray) -> np.ndarray:
         """Slots of (M, 4) keys, -1 where absent (one batched hash lookup)."""
         if len(keys) == 0:
             return np.zeros(0, np.int64)
-        buf, mask = self._hash.find(self._tensor(keys))
-        mask = mask.numpy()
-        out = np.full(len(keys), -1, np.int64)
-        if mask.any():
-            vals = self._hash.value_tensor().numpy().reshape(-1)
-            out[mask] = vals[buf.numpy()[mask]]
-        return out
+        return self._hash.find(pack_keys(keys))
 
     def _insert(self, keys: np.ndarray, slots: np.ndarray) -> np.ndarray:
         """Insert key -> slot; returns the mask of keys that were inserted (False: already there)."""
         if len(keys) == 0:
             return np.zeros(0, bool)
-        _, mask = self._hash.insert(self._tensor(keys), self._tensor(slots.reshape(-1, 1)))
-        return mask.numpy().astype(bool)
+        return self._hash.insert(pack_keys(keys), slots)
 
     def _erase(self, keys: np.ndarray) -> None:
         if len(keys):
-            self._hash.erase(self._tensor(keys))
+            self._hash.erase(pack_keys(keys))
 
     def _keys(self, pos: np.ndarray, bins: np.ndarray) -> np.ndarray:
         vox = np.floor(pos / self.voxel_size).astype(np.int64)
@@ -160,4 +148,4 @@ class VoxelLayer:
     def memory_bytes(self) -> int:
         """Bytes held by the slot arrays and the hash table (an estimate of the map's footprint)."""
         arrays = sum(v.nbytes for v in self._a.values())
-        return int(arrays + self._hash.capacity() * (16 + 4 + 16))
+        return int(arrays + self._hash.nbytes())

@@ -4,7 +4,7 @@ fuse-update-clean cycle.
 Data layout
 -----------
 Map points live in flat numpy arrays ("slots", structure of arrays, capacity doubled when full so
-appending is amortised O(1)). A hash map (Open3D's ``open3d.core.HashMap``, keys int32[4]) maps a
+appending is amortised O(1)). A hash map (:class:`~mdr_slam.fusion.hash_map.KeyHash`, numpy) maps a
 key ``(ix, iy, iz, nbin)`` to its slot: ``(ix, iy, iz)`` is the voxel the point's (averaged)
 position is in, kept up to date as the running mean moves (``rekey``, see the update step), ``nbin``
 the direction bin of its normal (0..5 = +x, -x, +y, -y, +z, -z by the dominant component;
@@ -207,8 +207,8 @@ class VoxelMap(VoxelLayer, VoxelIntegrator, VoxelCleaning, AnchorCorrections, Ma
 
     # ------------------------------------------------------------------ misc
     def close(self) -> None:
-        """Free the hash table now (Open3D reports tensors still alive at interpreter exit as
-        leaks); the map is empty afterwards and :meth:`reset` makes it usable again."""
+        """Free the hash table and the slot arrays now; the map is empty afterwards and
+        :meth:`reset` makes it usable again."""
         self._close_storage()
         self._pending.clear()
 

@@ -132,7 +132,7 @@ class FusionNodeConfig(Config):
     mesh_min_confidence: int = 2    # map points of at least this confidence are meshed
     mesh_max_views: int = 100       # camera poses of the run used as TSDF views (auto views if none)
     diagnostics_period: float = 1.0  # s between /diagnostics messages
-    omp_threads: int = 1            # Open3D OpenMP threads; 0: OpenMP's default (all cores)
+    omp_threads: int = 1            # Open3D OpenMP threads of the mesh export; 0: all cores
 
 
 # node: (the node's own parameters, the core component's)
