@@ -6,12 +6,15 @@ The bag is what ``mdr bench --navigate --record`` writes (DIR/SCENE/robot.bag): 
 camera_info, ``/odom`` (the wheel odometry), ``/tf_static`` (base_link -> camera) and
 ``/ground_truth/odom``. The frames get ``T_odom_cam`` as the pose node gives them, and tracking
 runs synchronously (``--threads`` for the mapping threads), so a run is repeatable and two
-configurations can be compared on the same closed-loop drive. The map is laid on the scene at
+configurations can be compared on the same closed-loop drive. Untracked frames are measured
+twice: the pose the tracker coasted on its corrected odometry, and the last tracked frame's
+map -> odom with the raw odometry (a node that holds map -> odom while LOST). The map is laid on the scene at
 the first tracked frame, as ``mdr bench --navigate`` did before it aligned by the trajectory.
 
     python scripts/replay_robot_bag.py DIR/office/robot.bag
     python scripts/replay_robot_bag.py BAG --set planar_motion=false          # a TrackerConfig field
     python scripts/replay_robot_bag.py BAG --const optimizer.ODOM_EDGES=False  # a pose module constant
+    python scripts/replay_robot_bag.py BAG --const system.ODOMETRY_CALIBRATION=False
 """
 from __future__ import annotations
 
@@ -109,6 +112,7 @@ def main(argv=None) -> int:
         setattr(M, name, type(getattr(M, name))(eval(v)))   # noqa: S307  (a developer's ablation)
     system = System(cam, cfg, threads=a.threads, T_map_cam0=T_base_cam)
     pending, rows = {}, []
+    held = None      # the last tracked frame's T_map_odom: a node without a coasted pose keeps it
     t0 = time.time()
     for topic, m, _ in bag.read_messages(topics=[LEFT, RIGHT]):
         st = m.header.stamp.to_sec()
@@ -118,12 +122,18 @@ def main(argv=None) -> int:
         pair = pending.pop(st)
         L, R = cam.rectify(image_msg_to_mono8(pair[LEFT]), image_msg_to_mono8(pair[RIGHT]))
         frame = system.make_frame(st, L, R)
-        if not a.no_odometry:
-            T = _interp(odom_t, odom[1], st)
-            frame.T_odom_cam = None if T is None else T @ T_base_cam
+        T_odom_base = None if a.no_odometry else _interp(odom_t, odom[1], st)
+        if T_odom_base is not None:
+            frame.T_odom_cam = T_odom_base @ T_base_cam
         res = system.track(st, frame=frame)
         T_map_base = None if res.T_map_cam is None else res.T_map_cam @ inv_T(T_base_cam)
-        rows.append((st, T_map_base, _interp(gt_t, gt[1], st)))
+        lost = None       # untracked: (the coasted pose or None, the raw odometry's)
+        if T_map_base is not None and T_odom_base is not None:
+            held = T_map_base @ inv_T(T_odom_base)
+        elif T_map_base is None and held is not None and T_odom_base is not None:
+            c = getattr(res, "T_map_cam_coasted", None)
+            lost = (None if c is None else c @ inv_T(T_base_cam), held @ T_odom_base)
+        rows.append((st, T_map_base, _interp(gt_t, gt[1], st), lost))
     lc = getattr(system, "loop_closing", None)
     n_loops = len(lc.loops) if lc is not None else 0
     system.shutdown()
@@ -132,8 +142,11 @@ def main(argv=None) -> int:
     if first is None:
         raise SystemExit("nothing tracked")
     A = first[2] @ inv_T(first[1])   # the map laid on the scene at the first tracked frame
-    out = []
-    for st, T, G in rows:
+    out, coast = [], []
+    for st, T, G, lost in rows:
+        if lost is not None and G is not None:
+            coast.append([np.nan if L is None else float(np.linalg.norm((A @ L)[:2, 3] - G[:2, 3]))
+                          for L in lost])
         if T is None or G is None:
             out.append((st, 0.0, np.nan, np.nan, np.nan))
             continue
@@ -147,6 +160,18 @@ def main(argv=None) -> int:
           % (os.path.basename(a.bag), len(out), int(ok.sum()), n_loops, wall, np.median(e[ok]),
              np.percentile(e[ok], 90), e[ok].max(), int(np.sum(e[ok] > 0.10)),
              int(np.sum(e[ok] > 0.05))))
+    coast = np.array(coast).reshape(-1, 2)
+    for j, what in enumerate(("coasted on the corrected odometry",
+                              "map -> odom held, raw odometry")):
+        e = coast[:, j]
+        e = e[~np.isnan(e)]
+        if len(e):
+            print("untracked frames, %s: %d, error (m) median %.3f, p90 %.3f, max %.3f; %d over "
+                  "0.10 m" % (what, len(e), np.median(e), np.percentile(e, 90), e.max(),
+                              int(np.sum(e > 0.10))))
+    cal = getattr(system, "odometry_calibration", None)
+    if cal is not None:
+        print(cal.summary())
     if a.out:
         np.save(a.out, out)
     return 0

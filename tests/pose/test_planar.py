@@ -280,3 +280,30 @@ def test_a_tracked_drift_the_wheel_odometry_contradicts_is_refused():
         t.records.append((f.stamp, kf, np.eye(4), False, f.T_cw))
         tr.Tracking._update_odometry_window(t, f)
     assert t.odom_window[0][0] == pytest.approx(2.9 - tr.ODOMETRY_WINDOW_S)
+
+
+def test_lost_frames_carry_the_pose_on_by_the_wheel_odometry():
+    """Tracked, then blank images (LOST) while the wheels go on: the result has no tracked pose
+    but the last tracked one carried on by the odometry (T_map_cam_coasted), where the base truly
+    is to within the odometry's 2 % error."""
+    room = BoxRoom((3.0, 1.5, 3.0), tex_size=768, seed=3)
+    poses = orbit_trajectory(28, radius=1.0, arc=np.pi / 2)
+    s = System(CAM, config={"planar_motion": "auto"}, threads=False, T_map_cam0=T_BASE_CAM_LEVEL)
+    res = []
+    for i, T_wc in enumerate(poses):
+        l, r = room.render_stereo(T_wc, CAM)
+        if i >= 22:
+            l, r = np.full_like(l, 128), np.full_like(r, 128)
+        f = s.make_frame(0.05 * i, l, r)
+        T = inv_T(poses[0]) @ T_wc
+        T[:3, 3] *= 1.02
+        f.T_odom_cam = T_BASE_CAM_LEVEL @ T
+        res.append(s.track(f.stamp, frame=f))
+    s.shutdown()
+    assert [r.state for r in res[:22]].count("OK") == 22
+    assert [r.state for r in res[24:]] == ["LOST"] * 4, [r.state for r in res]
+    for r, T_wc in zip(res[24:], poses[24:]):
+        assert r.T_map_cam is None and r.T_map_cam_coasted is not None
+        truth = T_BASE_CAM_LEVEL @ inv_T(poses[0]) @ T_wc
+        assert np.linalg.norm(r.T_map_cam_coasted[:3, 3] - truth[:3, 3]) < 0.02
+    assert all(r.T_map_cam_coasted is None for r in res[:22])

@@ -235,6 +235,35 @@ def test_pose_node_stages_split_a_frame_into_making_tracking_and_the_tracking_cp
                    "map_lock_wait": [1.5]}
 
 
+def test_lost_with_wheel_odometry_map_to_odom_follows_the_coasted_pose():
+    """While tracking is LOST the robot's odometry carries base_link on; the pose node moves
+    map -> odom so that map -> base_link is the pose the tracker coasted on its corrected
+    odometry, not the last tracked pose plus the raw odometry's drift. Without wheel odometry
+    (the node owns odom -> base_link) nothing is sent."""
+    from types import SimpleNamespace
+    import rospy
+    from mdr_slam.geometry import make_T
+    from mdr_slam.nodes.pose_node import PoseRelay
+    from scipy.spatial.transform import Rotation
+    sent = []
+    T_base_cam = make_T(Rotation.from_euler("xyz", [-90, 0, -90], degrees=True).as_matrix(),
+                        [0.1, 0.0, 0.5])
+    T_odom_base = make_T(Rotation.from_euler("z", 20, degrees=True).as_matrix(), [3.0, 1.0, 0.0])
+    relay = SimpleNamespace(wheel_odom=True, T_base_cam=T_base_cam, _last_map_odom=np.eye(4),
+                            tf=SimpleNamespace(sendTransform=sent.extend),
+                            p=SimpleNamespace(map_frame="map", odom_frame="odom"),
+                            from_the_future=lambda t, what: False,
+                            _odom_base_at=lambda stamp, warn=True: T_odom_base)
+    T_map_base = make_T(Rotation.from_euler("z", 25, degrees=True).as_matrix(), [3.1, 1.3, 0.0])
+    stamp = rospy.Time.from_sec(12.5)
+    assert PoseRelay.coast(relay, stamp, T_map_base @ T_base_cam)
+    assert len(sent) == 1 and sent[0].header.frame_id == "map" and \
+        sent[0].child_frame_id == "odom" and sent[0].header.stamp == stamp
+    np.testing.assert_allclose(relay._last_map_odom @ T_odom_base, T_map_base, atol=1e-9)
+    relay.wheel_odom = False
+    assert not PoseRelay.coast(relay, stamp, T_map_base @ T_base_cam) and len(sent) == 1
+
+
 def test_orb_node_drops_stale_frames_when_busy(rospy_client, start_process):
     """A burst faster than tracking: the node tracks the newest pair, drops the ones that waited
     (counted in /diagnostics), and the frames after a gap are still tracked (motion model dt)."""

@@ -35,6 +35,7 @@ from ..io.trajectory import write_kitti_poses, write_tum
 from ..pose import System, TrackerConfig, make_system
 from ..pose.factory import limit_library_threads
 from ..pose.map_io import PoseMapError
+from ..pose.odometry_calibration import MIN_TRAVEL_M
 from .common import (ClockWatch, StampGuard, Throttled, frame_root, read_config,
                      skip_future_stamp, transform_listener)
 from .config import NODE_CONFIGS, PoseNodeConfig
@@ -246,6 +247,8 @@ class PoseRelay:
             t["lost"] += 1
         elif res.T_map_cam is not None:
             t["last_ok"] = rospy.Time.now()
+        if getattr(res, "odometry_errors", None) is not None:
+            t["odometry_errors"] = res.odometry_errors
 
     def note_stage(self, stage: str, ms: float) -> None:
         """One frame's ms in ``stage`` (STAGES: wall time, but tracking_cpu) for the diagnostics'
@@ -287,6 +290,11 @@ class PoseRelay:
         stat.add("poses_refused_by_odometry", str(t["odom_refused"]))
         stat.add("last_tracked_s_ago", "%.2f" % ((rospy.Time.now() - t["last_ok"]).to_sec()
                                                   if t["last_ok"] is not None else float("nan")))
+        if t.get("odometry_errors") is not None:   # the wheel odometry's fitted errors
+            sc, rs, dr, m = t["odometry_errors"]
+            stat.add("wheel_odometry_fit", "scale %.4f, rotation scale %+.4f, yaw drift %+.3f "
+                     "deg/m, over %.1f m tracked%s" % (sc, rs, dr, m, "" if m >= MIN_TRAVEL_M
+                                                       else " (not applied yet)"))
         for k, v in sorted(self.warn.counts.items()):
             stat.add("skipped: " + k, str(v))
         self.health.add_to(stat)
@@ -457,6 +465,25 @@ class PoseRelay:
         self.n_published += 1
         self.rate.tick()
         self.last_latency = (rospy.Time.now() - stamp).to_sec()
+
+
+    def coast(self, stamp, T_map_cam: np.ndarray) -> bool:
+        """Tracking LOST with wheel odometry: map -> odom from the pose the tracker carried on by
+        the corrected odometry (TrackResult.T_map_cam_coasted), so that map -> base_link follows
+        it rather than the raw odometry's drift. Nothing else is published (no pose, path or
+        odometry message: the frame was not tracked). False when nothing was sent."""
+        if not self.wheel_odom or self.tf is None or self.T_base_cam is None or \
+                not is_valid_T(T_map_cam) or self._last_map_odom is None:
+            return False
+        if self.from_the_future(stamp.to_sec(), "pose"):
+            return False
+        T_odom_base = self._odom_base_at(stamp, warn=False)
+        if T_odom_base is None:
+            return False
+        self._last_map_odom = T_map_cam @ inv_T(self.T_base_cam) @ inv_T(T_odom_base)
+        self.tf.sendTransform([matrix_to_transform_stamped(self._last_map_odom, stamp,
+                                                           self.p.map_frame, self.p.odom_frame)])
+        return True
 
 
 class LatestSlot:
@@ -812,6 +839,8 @@ class OrbNode(PoseMapServices):
             self.publish_keyframes(stamp, 0, self.system.correction_id, res.new_keyframes)
         if res.T_map_cam is not None:
             self.relay.publish(stamp, res.T_map_cam, self.T_map_odom)
+        elif getattr(res, "T_map_cam_coasted", None) is not None:
+            self.relay.coast(stamp, res.T_map_cam_coasted)
 
     def publish_keyframes(self, stamp, reason: int, cid: int, kfs: dict) -> None:
         msg = KeyFrameArray()

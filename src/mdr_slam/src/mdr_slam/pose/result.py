@@ -34,3 +34,9 @@ class TrackResult:
     # keyframes that appeared since the last result, with their own stamps and poses (backends
     # that learn of a keyframe after the frame it was made from: orbslam3); None for System
     new_keyframes: Optional[Dict[int, Tuple[float, np.ndarray]]] = None
+    # not tracked, with wheel odometry: the last tracked pose carried on by the odometry (its
+    # fitted errors taken out: pose.odometry_calibration), for map -> odom while LOST
+    T_map_cam_coasted: Optional[np.ndarray] = None
+    # with wheel odometry: its fitted errors (pose.odometry_calibration): translation scale,
+    # rotation scale error, yaw drift in deg per metre, metres of tracked driving fitted on
+    odometry_errors: Optional[Tuple[float, float, float, float]] = None

@@ -26,6 +26,7 @@ from .frame import Frame
 from .local_mapping import LocalMapping
 from .loop_closing import LoopClosing
 from .map import Map
+from .odometry_calibration import OdometryCalibration
 from .orb import ORBextractor
 from .planar import PlanarMotion
 from .result import TrackResult
@@ -47,6 +48,9 @@ BACKPRESSURE_INLIERS = 80      # threads: tracking waits for LocalMapping when i
 FRAME_PROCESS = True           # threads: frames (ORB on both images, stereo matching) are made in a
                                # child process, out of the interpreter lock that tracking and the
                                # mapping threads share (ORB-SLAM2: in the tracking thread)
+
+ODOMETRY_CALIBRATION = True    # wheel odometry corrected by its errors fitted against tracking
+                               # (odometry_calibration): the motion prior, and the pose while LOST
 
 _REASONS = {"local_ba": 1, "loop_closure": 2}
 
@@ -79,6 +83,8 @@ class System:
                                             min_fast_threshold=self.cfg.min_fast_threshold)
         self.request_reset = False
         self.correction_id = 0
+        # the robot's odometry errors: kept across map resets (they are the wheels', not the map's)
+        self.odometry_calibration = OdometryCalibration()
         # localization mode (ORB-SLAM2 ActivateLocalizationMode): tracking against the map only,
         # no new keyframes or points, so a loaded map is used and never changed
         self.localization = False
@@ -207,6 +213,12 @@ class System:
                 for kf in self.map.keyframes.values():
                     kf.planar = planar
         t_frame = frame.build_ms
+        T_odom_base = None
+        if ODOMETRY_CALIBRATION and self.T_base_cam is not None and \
+                getattr(frame, "T_odom_cam", None) is not None:
+            T_odom_base = frame.T_odom_cam @ inv_T(self.T_base_cam)
+            frame.T_odom_cam = self.odometry_calibration.correct(stamp, T_odom_base) @ \
+                self.T_base_cam
         out = self.tracking.track(frame)
         if out["is_keyframe"] and self.loop_closing is not None:   # proximity loop path
             self.loop_closing.keep_image(out["keyframe_id"], frame.image)
@@ -227,14 +239,23 @@ class System:
                 self.loop_closing.spin_sync()
         corrections = self._collect_corrections()
         n_tracked = int(np.count_nonzero(frame.mp_ids >= 0)) if tracked_ok else 0
-        T_map_cam = None
+        T_map_cam = T_map_cam_coasted = odometry_errors = None
         if tracked_ok:   # through the reference keyframe: includes a correction made just now
             with self.map.lock:
                 _, kf, T_c_ref, _, _ = self.tracking.records[-1]
                 T_map_cam = self.T_map_world @ inv_T(self._current(T_c_ref, kf))
+        if T_odom_base is not None:
+            # a relocalization's pose may be the far end of a jump: not a pair for the fit
+            self.odometry_calibration.observe(stamp, T_map_cam @ inv_T(self.T_base_cam)
+                                              if T_map_cam is not None and state == OK else None)
+            if T_map_cam is None:
+                T = self.odometry_calibration.coasted()
+                T_map_cam_coasted = None if T is None else T @ self.T_base_cam
+            odometry_errors = self.odometry_calibration.errors()
         return TrackResult(
             stamp=float(stamp), state=state,
-            T_map_cam=T_map_cam,
+            T_map_cam=T_map_cam, T_map_cam_coasted=T_map_cam_coasted,
+            odometry_errors=odometry_errors,
             n_tracked=n_tracked, is_keyframe=bool(out["is_keyframe"]),
             keyframe_id=int(out["keyframe_id"]), corrections=corrections,
             time_ms=t_track if self.threads else t_frame + 1000.0 * (time.perf_counter() - t0),
