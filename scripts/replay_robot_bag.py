@@ -7,8 +7,8 @@ camera_info, ``/odom`` (the wheel odometry), ``/tf_static`` (base_link -> camera
 ``/ground_truth/odom``. The frames get ``T_odom_cam`` as the pose node gives them, and tracking
 runs synchronously (``--threads`` for the mapping threads), so a run is repeatable and two
 configurations can be compared on the same closed-loop drive. Untracked frames are measured
-twice: the pose the tracker coasted on its corrected odometry, and the last tracked frame's
-map -> odom with the raw odometry (a node that holds map -> odom while LOST). The map is laid on the scene at
+twice, by the error of the motion since the last tracked frame: the pose coasted on the corrected
+odometry, and the raw odometry's (a node that holds map -> odom while LOST). The map is laid on the scene at
 the first tracked frame, as ``mdr bench --navigate`` did before it aligned by the trajectory.
 
     python scripts/replay_robot_bag.py DIR/office/robot.bag
@@ -113,6 +113,7 @@ def main(argv=None) -> int:
     system = System(cam, cfg, threads=a.threads, T_map_cam0=T_base_cam)
     pending, rows = {}, []
     held = None      # the last tracked frame's T_map_odom: a node without a coasted pose keeps it
+    last = None      # the last tracked frame's (T_map_base, true T_world_base)
     t0 = time.time()
     for topic, m, _ in bag.read_messages(topics=[LEFT, RIGHT]):
         st = m.header.stamp.to_sec()
@@ -127,13 +128,15 @@ def main(argv=None) -> int:
             frame.T_odom_cam = T_odom_base @ T_base_cam
         res = system.track(st, frame=frame)
         T_map_base = None if res.T_map_cam is None else res.T_map_cam @ inv_T(T_base_cam)
-        lost = None       # untracked: (the coasted pose or None, the raw odometry's)
+        G = _interp(gt_t, gt[1], st)
+        lost = None       # untracked: (the coasted pose or None, the raw odometry's, last tracked)
         if T_map_base is not None and T_odom_base is not None:
             held = T_map_base @ inv_T(T_odom_base)
+            last = (T_map_base, G)
         elif T_map_base is None and held is not None and T_odom_base is not None:
             c = getattr(res, "T_map_cam_coasted", None)
-            lost = (None if c is None else c @ inv_T(T_base_cam), held @ T_odom_base)
-        rows.append((st, T_map_base, _interp(gt_t, gt[1], st), lost))
+            lost = (None if c is None else c @ inv_T(T_base_cam), held @ T_odom_base, last)
+        rows.append((st, T_map_base, G, lost))
     lc = getattr(system, "loop_closing", None)
     n_loops = len(lc.loops) if lc is not None else 0
     system.shutdown()
@@ -144,9 +147,14 @@ def main(argv=None) -> int:
     A = first[2] @ inv_T(first[1])   # the map laid on the scene at the first tracked frame
     out, coast = [], []
     for st, T, G, lost in rows:
-        if lost is not None and G is not None:
-            coast.append([np.nan if L is None else float(np.linalg.norm((A @ L)[:2, 3] - G[:2, 3]))
-                          for L in lost])
+        if lost is not None and G is not None and lost[2][1] is not None:
+            # the dead reckoning's own error: the motion since the last tracked frame, in its
+            # base frame, against the true one (the map's error at that frame left out)
+            T0, G0 = lost[2]
+            true = (inv_T(G0) @ G)[:2, 3]
+            coast.append([np.nan if L is None else float(np.linalg.norm((inv_T(T0) @ L)[:2, 3]
+                                                                        - true))
+                          for L in lost[:2]])
         if T is None or G is None:
             out.append((st, 0.0, np.nan, np.nan, np.nan))
             continue
@@ -166,8 +174,8 @@ def main(argv=None) -> int:
         e = coast[:, j]
         e = e[~np.isnan(e)]
         if len(e):
-            print("untracked frames, %s: %d, error (m) median %.3f, p90 %.3f, max %.3f; %d over "
-                  "0.10 m" % (what, len(e), np.median(e), np.percentile(e, 90), e.max(),
+            print("untracked frames, %s: %d, error of the motion since the last tracked frame "
+                  "(m) median %.3f, p90 %.3f, max %.3f; %d over 0.10 m" % (what, len(e), np.median(e), np.percentile(e, 90), e.max(),
                               int(np.sum(e > 0.10))))
     cal = getattr(system, "odometry_calibration", None)
     if cal is not None:

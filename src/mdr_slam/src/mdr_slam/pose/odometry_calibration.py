@@ -64,8 +64,8 @@ class OdometryCalibration:
     """Systematic odometry errors fitted online, the raw odometry corrected with them (a chain of
     corrected increments) and the pose coasted on it while tracking is lost.
 
-    Per frame: :meth:`correct` with the robot's raw ``T_odom_base`` (before tracking; gives the
-    corrected ``T_odom_base`` the tracker uses), then :meth:`observe` with the tracked
+    Per frame: :meth:`correct` with the robot's raw ``T_odom_base`` (before tracking; returns
+    the corrected ``T_odom_base``), then :meth:`observe` with the tracked
     ``T_map_base`` or None (LOST, relocalized). :meth:`coasted` is the ``T_map_base`` of the last
     tracked frame carried on by the corrected odometry since. Frames of base_link: the odometry's
     and the map's z axes are the floor's normal (REP-105)."""

@@ -50,7 +50,7 @@ FRAME_PROCESS = True           # threads: frames (ORB on both images, stereo mat
                                # mapping threads share (ORB-SLAM2: in the tracking thread)
 
 ODOMETRY_CALIBRATION = True    # wheel odometry corrected by its errors fitted against tracking
-                               # (odometry_calibration): the motion prior, and the pose while LOST
+                               # (odometry_calibration) carries the pose while LOST
 
 _REASONS = {"local_ba": 1, "loop_closure": 2}
 
@@ -216,9 +216,10 @@ class System:
         T_odom_base = None
         if ODOMETRY_CALIBRATION and self.T_base_cam is not None and \
                 getattr(frame, "T_odom_cam", None) is not None:
+            # the tracker keeps the raw odometry (its gates allow for the raw errors); the
+            # corrected chain carries the pose while it is lost
             T_odom_base = frame.T_odom_cam @ inv_T(self.T_base_cam)
-            frame.T_odom_cam = self.odometry_calibration.correct(stamp, T_odom_base) @ \
-                self.T_base_cam
+            self.odometry_calibration.correct(stamp, T_odom_base)
         out = self.tracking.track(frame)
         if out["is_keyframe"] and self.loop_closing is not None:   # proximity loop path
             self.loop_closing.keep_image(out["keyframe_id"], frame.image)
