@@ -248,7 +248,14 @@ class PoseRelay:
         elif res.T_map_cam is not None:
             t["last_ok"] = rospy.Time.now()
         if getattr(res, "odometry_errors", None) is not None:
+            before = t.get("odometry_errors")
             t["odometry_errors"] = res.odometry_errors
+            if res.odometry_errors[3] >= MIN_TRAVEL_M and (before is None or
+                                                           before[3] < MIN_TRAVEL_M):
+                rospy.loginfo("pose_node: wheel odometry fitted over %.1f m tracked (scale %.4f, "
+                              "rotation scale %+.4f, yaw drift %+.3f deg/m): while LOST, map -> "
+                              "odom follows the corrected odometry", res.odometry_errors[3],
+                              *res.odometry_errors[:3])
 
     def note_stage(self, stage: str, ms: float) -> None:
         """One frame's ms in ``stage`` (STAGES: wall time, but tracking_cpu) for the diagnostics'
