@@ -473,7 +473,6 @@ class PoseRelay:
         self.rate.tick()
         self.last_latency = (rospy.Time.now() - stamp).to_sec()
 
-
     def coast(self, stamp, T_map_cam: np.ndarray) -> bool:
         """Tracking LOST with wheel odometry: map -> odom from the pose the tracker carried on by
         the corrected odometry (TrackResult.T_map_cam_coasted), so that map -> base_link follows
