@@ -282,6 +282,39 @@ def test_a_tracked_drift_the_wheel_odometry_contradicts_is_refused():
     assert t.odom_window[0][0] == pytest.approx(2.9 - tr.ODOMETRY_WINDOW_S)
 
 
+def test_a_tracked_step_the_wheel_odometry_contradicts_is_refused():
+    """A pose tracked within ODOMETRY_STEP_S of the last tracked frame must follow the wheel
+    odometry's step: 0.03 m + 15 % of its translation and 1 deg + 15 % of its turn. The base drove
+    0.1 m and turned 3 deg in 0.1 s: a pose 1.8 deg further round or 5 cm to the side is refused,
+    one 0.5 deg or 1 cm off is not; after a second's gap only the wide gate (15 deg, 0.5 m) holds."""
+    from mdr_slam.pose import tracking as tr
+    yaw = lambda deg: Rotation.from_euler("y", deg, degrees=True).as_matrix()   # optical frame
+    odo = make_T(yaw(3.0), [0.0, 0.0, 0.1])          # T_odom_cam of the frame: turned, driven on
+
+    def pose(deg, side=0.0):
+        return inv_T(make_T(yaw(deg), [side, 0.0, 0.1]))   # T_cw: the camera's pose in map
+    last = SimpleNamespace(stamp=0.0, T_odom_cam=np.eye(4), T_cw=np.eye(4))
+    t = SimpleNamespace(last_frame=last, n_odom_step_refused=0, last_odom_refusal=None,
+                        _update_last_frame=lambda: None)
+    t.odometry_motion = lambda f: tr.Tracking.odometry_motion(t, f)
+    agrees = lambda T_cw, stamp=0.1: tr.Tracking.odometry_agrees(t, SimpleNamespace(
+        stamp=stamp, T_odom_cam=odo, T_cw=T_cw, mp_ids=np.zeros(3, int)))
+    assert agrees(pose(3.0)) and agrees(pose(3.5)) and agrees(pose(3.0, 0.01))
+    assert t.n_odom_step_refused == 0 and t.last_odom_refusal is None
+    assert not agrees(pose(4.8))
+    assert not agrees(pose(3.0, 0.05))
+    assert t.n_odom_step_refused == 2 and t.last_odom_refusal[0] == pytest.approx(0.1)
+    last.stamp = -1.0                              # a second since the last tracked frame
+    assert agrees(pose(4.8)) and agrees(pose(3.0, 0.05))
+    assert not agrees(pose(20.0))
+    # the check itself, without counting (the one-patch refinement asks it)
+    last.stamp = 0.0
+    n = t.n_odom_step_refused
+    assert not tr.Tracking.odometry_agrees(t, SimpleNamespace(
+        stamp=0.1, T_odom_cam=odo, T_cw=pose(4.8), mp_ids=np.zeros(3, int)), record=False)
+    assert t.n_odom_step_refused == n
+
+
 def test_lost_frames_carry_the_pose_on_by_the_wheel_odometry():
     """Tracked, then blank images (LOST) while the wheels go on: the result has no tracked pose
     but the last tracked one carried on by the odometry (T_map_cam_coasted), where the base truly

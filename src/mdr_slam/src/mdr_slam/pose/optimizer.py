@@ -30,11 +30,12 @@ CHI2_MONO = 5.991
 CHI2_STEREO = 7.815
 # wheel odometry between keyframes in the local BA (not in ORB-SLAM2): the motion between two
 # keyframes at most ODOM_EDGE_MAX_GAP_S apart, with sigmas SIGMA_M / SIGMA_DEG + REL x the motion's
-# translation (m) / rotation: a wheeled base is good to a few percent over a keyframe gap
+# translation (m) / rotation: a differential drive is good to a percent or two over a keyframe
+# gap. Looser, a corner's few weak-texture points turned the newest keyframes by 4 degrees
 ODOM_EDGES = True
 ODOM_EDGE_SIGMA_M = 0.01
-ODOM_EDGE_SIGMA_DEG = 0.5
-ODOM_EDGE_SIGMA_REL = 0.05
+ODOM_EDGE_SIGMA_DEG = 0.2
+ODOM_EDGE_SIGMA_REL = 0.02
 ODOM_EDGE_MAX_GAP_S = 5.0
 
 

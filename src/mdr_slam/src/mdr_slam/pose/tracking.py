@@ -60,6 +60,10 @@ ODOMETRY_GATE_M = 0.5          # a pose (tracked, relocalized) is refused when i
 ODOMETRY_GATE_REL = 0.2        # this + REL x the distance travelled from where the odometry says the
 ODOMETRY_GATE_DEG = 15.0       # robot is, or turned by more than this + DEG_PER_M x that distance
 ODOMETRY_GATE_DEG_PER_M = 3.0  # (wheel odometry drifts a few percent, ~1-2 deg/m; a wrong place is m away)
+ODOMETRY_STEP_S = 0.5          # a pose tracked this soon after the last tracked frame is refused when its
+ODOMETRY_STEP_M = 0.03         # motion since differs from the odometry's by more than this + REL x the
+ODOMETRY_STEP_DEG = 1.0        # odometry's translation, or this + REL x its rotation: over a frame or
+ODOMETRY_STEP_REL = 0.15       # two wheels are good to millimetres and a tenth of a degree
 ODOMETRY_WINDOW_S = 2.0       # planar motion: the tracked motion over about this long (s) ...
 ODOMETRY_WINDOW_M = 0.10       # ... may differ from the wheel odometry's by this + REL x the odometry's
 ODOMETRY_WINDOW_REL = 0.10     # path (m) and by DEG + DEG_PER_M x that path, else the frame is refused
@@ -148,6 +152,7 @@ class Tracking:
         # (stamp, ref kf, T_c_ref, T_odom_cam) of the frames tracked OK lately (planar motion)
         self.odom_window: List[tuple] = []
         self.n_odom_window_refused = 0                 # of those, by odometry_window_agrees
+        self.n_odom_step_refused = 0                   # of those, by odometry_agrees' step
 
     # ------------------------------------------------------------------ entry
     def track(self, frame: Frame) -> dict:
@@ -349,12 +354,20 @@ class Tracking:
             return None
         return normalize_pose(inv_T(frame.T_odom_cam) @ last.T_odom_cam)
 
-    def odometry_agrees(self, frame: Frame) -> bool:
+    def odometry_agrees(self, frame: Frame, record: bool = True) -> bool:
         """A tracked or relocalized pose within reach of the robot's odometry since the last
         tracked frame (True without odometry): within ODOMETRY_GATE_M + ODOMETRY_GATE_REL x the
         distance travelled, and ODOMETRY_GATE_DEG + ODOMETRY_GATE_DEG_PER_M x that distance. A
         room's repeated furniture and posters can match a wrong keyframe well enough for PnP; a
-        wheeled base cannot have jumped there."""
+        wheeled base cannot have jumped there.
+
+        A pose within ODOMETRY_STEP_S of the last tracked frame is held to the odometry's step
+        too: ODOMETRY_STEP_M + ODOMETRY_STEP_REL x its translation and ODOMETRY_STEP_DEG +
+        ODOMETRY_STEP_REL x its rotation. On weak texture the local map's few points can pull
+        one frame's pose degrees off (a wrong patch, one poster's yaw against a lateral shift),
+        and the map built on from there keeps the error; the wheels over a frame or two are not
+        that wrong. A relocalization later than that may end a drift, and is not held to it.
+        ``record`` False: the refusal counters and :attr:`last_odom_refusal` are left alone."""
         odo = self.odometry_motion(frame)
         if odo is None or frame.T_cw is None:
             return True
@@ -366,7 +379,12 @@ class Tracking:
         ang = float(np.degrees(np.linalg.norm(Rotation.from_matrix(D[:3, :3]).as_rotvec())))
         agrees = dist <= ODOMETRY_GATE_M + ODOMETRY_GATE_REL * travel and \
             ang <= ODOMETRY_GATE_DEG + ODOMETRY_GATE_DEG_PER_M * travel
-        if not agrees:
+        if agrees and frame.stamp - self.last_frame.stamp <= float(ODOMETRY_STEP_S):
+            turn = float(np.degrees(np.linalg.norm(Rotation.from_matrix(odo[:3, :3]).as_rotvec())))
+            agrees = dist <= ODOMETRY_STEP_M + ODOMETRY_STEP_REL * travel and \
+                ang <= ODOMETRY_STEP_DEG + ODOMETRY_STEP_REL * turn
+            self.n_odom_step_refused += int(not agrees and record)
+        if not agrees and record:
             self.last_odom_refusal = (frame.stamp, dist, ang, travel,
                                       int(np.count_nonzero(frame.mp_ids >= 0)))
         return agrees
@@ -833,7 +851,11 @@ class Tracking:
             planar=getattr(self.map, "planar", None))
         if n_inl < 10:
             return 0
+        before = frame.T_cw
         frame.set_pose(T_cw)
+        if not self.odometry_agrees(frame, record=False):
+            frame.set_pose(before)   # the shading pulled the pose off the wheels' step: not kept
+            return 0
         frame.outlier[idx] = outlier[:n]
         return m
 
