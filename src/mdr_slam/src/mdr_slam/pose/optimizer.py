@@ -31,7 +31,7 @@ CHI2_STEREO = 7.815
 # wheel odometry between keyframes in the local BA (not in ORB-SLAM2): the motion between two
 # keyframes at most ODOM_EDGE_MAX_GAP_S apart, with sigmas SIGMA_M / SIGMA_DEG + REL x the motion's
 # translation (m) / rotation: a differential drive is good to a percent or two over a keyframe
-# gap. Looser, a corner's few weak-texture points turned the newest keyframes by 4 degrees
+# gap, and looser edges let a few weak-texture points turn the newest keyframes by degrees
 ODOM_EDGES = True
 ODOM_EDGE_SIGMA_M = 0.01
 ODOM_EDGE_SIGMA_DEG = 0.2
