@@ -149,8 +149,8 @@ class Room:
 
 class FakeRobot:
     """A kinematic base: integrates /cmd_vel (vx, vy, wz in base_link) as given, stops when the
-    last command is older than 0.5 s; publishes tf map -> odom (identity), odom -> base_link and
-    /mdr/odom at 50 Hz, and with a ``room`` the camera's view of it on /mdr/depth/points at 5 Hz
+    last command is older than 0.5 s; publishes tf map -> odom (``map_odom``: x, y, yaw; identity
+    unless a test moves it, as a relocalization does), odom -> base_link and /mdr/odom at 50 Hz, and with a ``room`` the camera's view of it on /mdr/depth/points at 5 Hz
     (the same stamp as the tf it was seen from)."""
 
     def __init__(self, rospy, pose, room=None, rate=50.0, cloud_rate=5.0):
@@ -160,6 +160,7 @@ class FakeRobot:
         from sensor_msgs.msg import PointCloud2
         self.rospy = rospy
         self.pose = np.array(pose, np.float64)
+        self.map_odom = (0.0, 0.0, 0.0)
         self.cmd = np.zeros(3)
         self.cmd_time = -1e9
         self.cmds = []             # (ROS time s, vx, vy, wz) of every /cmd_vel
@@ -216,8 +217,9 @@ class FakeRobot:
                                       th + v[2] * dt])
                 x, y, th = self.pose
                 self.track.append((stamp.to_sec(), x, y, th))
+                map_odom = self.map_odom
             tfs = []
-            for parent, child, (tx, ty, yaw) in (("map", "odom", (0.0, 0.0, 0.0)),
+            for parent, child, (tx, ty, yaw) in (("map", "odom", map_odom),
                                                  ("odom", "base_link", (x, y, th))):
                 t = TransformStamped()
                 t.header.stamp = stamp
@@ -569,6 +571,70 @@ def test_recovery_clears_a_stale_obstacle(rospy_client, start_process, grid_publ
     assert names and names[0] == "conservative_reset"
     assert state == GoalStatus.SUCCEEDED
     assert end[0] > 6.0
+
+
+def test_local_costmap_keeps_the_seen_walls_through_a_map_to_odom_jump(rospy_client, start_process,
+                                                                      grid_publisher):
+    """A relocalization moves map -> odom by 0.5 m. The local costmap (in odom) keeps the
+    corridor's walls where the camera saw them, beside the robot and out of its view now, and
+    gets none where the map cloud lands through the new map -> odom: marked from the map cloud,
+    the south wall stood 0.5 m inside the corridor beside the robot, and no camera ray there
+    cleared it."""
+    from nav_msgs.msg import OccupancyGrid
+    from sensor_msgs.msg import PointCloud2
+    from mdr_slam.conversions import arrays_to_pointcloud2
+    rospy = rospy_client
+    walls = [(-1, 0, 9, 0), (-1, 2, 9, 2)]          # a corridor 2 m wide along x
+    g, origin = wall_grid(walls, (-1.5, -1.0), (9.5, 3.5))
+    grid_publisher.publish(g, origin)
+    xs, zs = np.meshgrid(np.arange(-1.0, 9.0, 0.05), np.arange(0.3, 1.01, 0.1))
+    pts = np.vstack([np.column_stack([xs.ravel(), np.full(xs.size, y), zs.ravel()])
+                     for y in (0.0, 2.0)])
+    pub_pts = rospy.Publisher("/mdr/map/points", PointCloud2, queue_size=1, latch=True)
+    costmaps = Recorder(rospy, "/move_base/local_costmap/costmap", OccupancyGrid)
+    # the whole window at every publish (else only changed parts, as map_msgs updates)
+    full = "/move_base/local_costmap/always_send_full_costmap"
+    rospy.set_param(full, True)
+    robot = FakeRobot(rospy, (0.3, 1.0, 0.0), room=Room(walls))
+    launch = start_move_base(start_process)
+
+    def worst(y0, y1):
+        """The highest cost (0-100) of the latest local costmap in odom y [y0, y1], x [1.6, 2.2]."""
+        if not costmaps.msgs:
+            return None
+        c, o, res = msg_grid(costmaps.msgs[-1][1])
+        xx, yy = np.meshgrid(np.arange(1.6, 2.2, res / 2), np.arange(y0, y1, res / 2))
+        r, cc, inside = cells_of(np.column_stack([xx.ravel(), yy.ravel()]), o, res, c.shape)
+        return int(c[r[inside], cc[inside]].max()) if inside.any() else None
+    try:
+        goal_client(rospy)
+        pub_pts.publish(arrays_to_pointcloud2({}, rospy.Time.now(), "map", xyz=pts))
+        # seen from x = 0.3: both walls over x 1.6-2.2, within the 4 m window
+        seen = wait_for(lambda: (worst(1.95, 2.05) or 0) == 100 and
+                        (worst(-0.05, 0.05) or 0) == 100, 60, 0.5)
+        with robot.lock:                              # then beside the robot, out of view
+            robot.pose = np.array([1.9, 1.0, 0.0])
+        time.sleep(2.0)
+        robot.map_odom = (0.0, -0.5, 0.0)            # map now puts the walls at odom y 0.5, 2.5
+        time.sleep(1.0)                               # tf has the new map -> odom at the stamp
+        pub_pts.publish(arrays_to_pointcloud2({}, rospy.Time.now(), "map", xyz=pts))
+        time.sleep(3.0)                               # a dozen updates of the costmap
+        costmaps.msgs.clear()
+        assert wait_for(lambda: costmaps.msgs, 30, 0.2)
+        north, south = worst(1.95, 2.05), worst(-0.05, 0.05)
+        inside = worst(0.45, 0.55)
+    finally:
+        costmaps.stop()
+        robot.stop()
+        pub_pts.unregister()
+        launch.stop()
+        rospy.delete_param(full)
+    print("local costmap: walls seen %s; after the robot passed them and a 0.5 m map -> odom jump, "
+          "the highest cost at the north wall %s, the south wall %s, 0.5 m inside: %s"
+          % (seen, north, south, inside))
+    assert seen
+    assert north == 100 and south == 100
+    assert inside is not None and inside < 99           # neither lethal nor inscribed
 
 
 # ---------------------------------------------------------------------- closed loop, fusion grid

@@ -133,6 +133,11 @@ def test_costmap_parameters_match_the_fusion_grid():
         assert v / fusion["display_voxel"] == pytest.approx(round(v / fusion["display_voxel"]))
     names = [p["name"] for p in glob["plugins"]]
     assert names == ["static_layer", "obstacle_layer", "inflation_layer"]
+    # the local costmap (odom) marks what the cameras see now, not the map cloud, whose marks
+    # stay where an old map -> odom put them (tests/ros/test_move_base.py)
+    assert [p["name"] for p in local["plugins"]] == names[1:]
+    assert local["obstacle_layer"]["observation_sources"].split() == ["mdr_depth", "bumper"]
+    assert local["obstacle_layer"]["mdr_depth"]["marking"] and srcs["mdr/depth/points"]["clearing"]
     # the costmap's own unknown cells are only those of a global costmap just resized (blank):
     # the planner must not cross them (tests/ros/test_move_base.py)
     assert glob["track_unknown_space"] and not mb["GlobalPlanner"]["allow_unknown"]
