@@ -3,11 +3,11 @@
 not need switched off).
 
 The robot is a kinematic base in this process (:class:`FakeRobot`): it integrates /cmd_vel as
-given (a lateral velocity moves it sideways), publishes tf map -> odom -> base_link and
-/mdr/odom, and can carry a depth camera (:class:`Room`: the wall points of a room of straight
-walls it sees, as a PointCloud2 in its optical frame on /mdr/depth/points). Maps come either as
-a published /mdr/map/grid or, in the closed loop, from the fusion node fed by that camera while
-the robot explores, so the grid grows as the node publishes it.
+given (a lateral velocity moves it sideways), publishes tf map -> odom -> base_link and its
+wheel odometry on /odom, and can carry a depth camera (:class:`Room`: the wall points of a room
+of straight walls it sees, as a PointCloud2 in its optical frame on /mdr/depth/points). Maps come
+either as a published /mdr/map/grid or, in the closed loop, from the fusion node fed by that
+camera while the robot explores, so the grid grows as the node publishes it.
 
 Skipped when move_base is not found (Noetic: apt install ros-noetic-navigation; Debian:
 MDR_BUILD_NAVIGATION=1 ./catkin_ws_setup.sh builds it from ../shared/thirdparty).
@@ -150,8 +150,9 @@ class Room:
 class FakeRobot:
     """A kinematic base: integrates /cmd_vel (vx, vy, wz in base_link) as given, stops when the
     last command is older than 0.5 s; publishes tf map -> odom (``map_odom``: x, y, yaw; identity
-    unless a test moves it, as a relocalization does), odom -> base_link and /mdr/odom at 50 Hz, and with a ``room`` the camera's view of it on /mdr/depth/points at 5 Hz
-    (the same stamp as the tf it was seen from)."""
+    unless a test moves it, as a relocalization does), odom -> base_link and its wheel odometry on
+    /odom (with the velocity) at 50 Hz, and with a ``room`` the camera's view of it on
+    /mdr/depth/points at 5 Hz (the same stamp as the tf it was seen from)."""
 
     def __init__(self, rospy, pose, room=None, rate=50.0, cloud_rate=5.0):
         import tf2_ros
@@ -169,7 +170,7 @@ class FakeRobot:
         self.room = room
         self.rate, self.cloud_period = rate, 1.0 / cloud_rate
         self.tfb = tf2_ros.TransformBroadcaster()
-        self.pub_odom = rospy.Publisher("/mdr/odom", Odometry, queue_size=5)
+        self.pub_odom = rospy.Publisher("/odom", Odometry, queue_size=5)
         self.pub_cloud = (rospy.Publisher("/mdr/depth/points", PointCloud2, queue_size=2)
                           if room else None)
         if room is not None:
@@ -403,6 +404,40 @@ def test_dwa_sends_no_lateral_velocity(rospy_client, start_process, grid_publish
     assert state == GoalStatus.SUCCEEDED
     tol = _nav_yaml("move_base.yaml")["DWAPlannerROS"]["xy_goal_tolerance"]
     assert math.hypot(end[0] - 1.0, end[1] - 2.5) <= tol + 0.05
+
+def test_dwa_turns_to_the_goal_while_the_tracker_is_silent(rospy_client, start_process,
+                                                          grid_publisher):
+    """A goal at the robot's place, turned 1.2 rad. The tracker's /mdr/odom went silent while the
+    base was turning (tracking LOST), its last twist 0.5 rad/s. DWA reads the base's velocity
+    from the wheel odometry (/odom), sees it stopped and turns it to the goal's heading; fed
+    /mdr/odom it waited for the stale turn to stop and sent zeros until the goal timed out."""
+    from actionlib_msgs.msg import GoalStatus
+    from nav_msgs.msg import Odometry
+    rospy = rospy_client
+    g, origin = wall_grid(ROOM, (-0.5, -0.5), (6.5, 4.5))
+    grid_publisher.publish(g, origin)
+    robot = FakeRobot(rospy, (3.0, 2.0, 0.0))
+    stale = rospy.Publisher("/mdr/odom", Odometry, queue_size=1, latch=True)
+    m = Odometry()
+    m.header.stamp, m.header.frame_id, m.child_frame_id = rospy.Time.now(), "map", "base_link"
+    m.pose.pose.position.x, m.pose.pose.position.y, m.pose.pose.orientation.w = 3.0, 2.0, 1.0
+    m.twist.twist.angular.z = 0.5
+    stale.publish(m)
+    launch = start_move_base(start_process)
+    try:
+        client = goal_client(rospy)
+        client.send_goal(goal(3.0, 2.0, 1.2))
+        done = client.wait_for_result(rospy.Duration(60))
+        state = client.get_state()
+        end = robot.xy_yaw()
+    finally:
+        robot.stop()
+        stale.unregister()
+        launch.stop()
+    print("goal %s (%s), robot at (%.2f, %.2f) yaw %.2f rad" % (state_name(state), done, *end))
+    assert state == GoalStatus.SUCCEEDED
+    assert abs(end[2] - 1.2) < 0.25 and np.hypot(end[0] - 3.0, end[1] - 2.0) < 0.2
+
 
 
 # ---------------------------------------------------------------------- the global plan
