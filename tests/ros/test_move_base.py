@@ -405,6 +405,7 @@ def test_dwa_sends_no_lateral_velocity(rospy_client, start_process, grid_publish
     tol = _nav_yaml("move_base.yaml")["DWAPlannerROS"]["xy_goal_tolerance"]
     assert math.hypot(end[0] - 1.0, end[1] - 2.5) <= tol + 0.05
 
+
 def test_dwa_turns_to_the_goal_while_the_tracker_is_silent(rospy_client, start_process,
                                                           grid_publisher):
     """A goal at the robot's place, turned 1.2 rad. The tracker's /mdr/odom went silent while the
@@ -437,7 +438,6 @@ def test_dwa_turns_to_the_goal_while_the_tracker_is_silent(rospy_client, start_p
     print("goal %s (%s), robot at (%.2f, %.2f) yaw %.2f rad" % (state_name(state), done, *end))
     assert state == GoalStatus.SUCCEEDED
     assert abs(end[2] - 1.2) < 0.25 and np.hypot(end[0] - 3.0, end[1] - 2.0) < 0.2
-
 
 
 # ---------------------------------------------------------------------- the global plan
