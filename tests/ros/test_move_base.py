@@ -554,10 +554,11 @@ def test_no_plan_through_a_wall_right_after_a_costmap_resize(rospy_client, start
 
 # ---------------------------------------------------------------------- recovery
 def test_recovery_clears_a_stale_obstacle(rospy_client, start_process, grid_publisher):
-    """A phantom obstacle: map points that once blocked a doorway and are gone from the map
-    cloud stay marked in the obstacle layer (the map cloud never clears). No plan gets through;
-    move_base's recovery clears the obstacle layer (outside a 3 m square around the robot) and
-    the robot then reaches the goal. A recovery that clears a layer of another name leaves it."""
+    """A phantom obstacle: a bumper's contacts in a doorway (someone stood there and left) stay
+    marked in the obstacle layer (the bumper never clears, and no camera looks through). No plan
+    gets through; move_base's recovery clears the obstacle layer (outside a 3 m square around
+    the robot) and the robot then reaches the goal. A recovery that clears a layer of another name
+    leaves it."""
     from actionlib_msgs.msg import GoalStatus
     from move_base_msgs.msg import RecoveryStatus
     from sensor_msgs.msg import PointCloud2
@@ -567,24 +568,26 @@ def test_recovery_clears_a_stale_obstacle(rospy_client, start_process, grid_publ
              (4, 0, 4, 1.5), (4, 2.5, 4, 4)]                  # a partition with a 1 m doorway
     g, origin = wall_grid(walls, (-0.5, -0.5), (8.5, 4.5))
     grid_publisher.publish(g, origin)
-    pub_pts = rospy.Publisher("/mdr/map/points", PointCloud2, queue_size=1, latch=True)
+    pub_bumper = rospy.Publisher("/bumper/points", PointCloud2, queue_size=1, latch=True)
     recoveries = Recorder(rospy, "/move_base/recovery_status", RecoveryStatus)
-    robot = FakeRobot(rospy, (1.0, 2.0, 0.0))
+    start = (2.3, 2.0)     # the doorway 1.7 m ahead: in the bumper source's obstacle_range (2 m)
+    robot = FakeRobot(rospy, (start[0], start[1], 0.0))
     launch = start_move_base(start_process)
 
     def plan_ok():
-        return len(make_plan(rospy, (1.0, 2.0), (6.5, 2.0))) > 0
+        return len(make_plan(rospy, start, (6.5, 2.0))) > 0
 
-    yy, zz = np.meshgrid(np.arange(1.5, 2.51, 0.025), np.arange(0.3, 1.01, 0.05))
-    blob = np.column_stack([np.full(yy.size, 4.0), yy.ravel(), zz.ravel()])
-    wall_pt = np.array([[0.02, 0.5, 0.5]])
+    # the contacts in base_link, the doorway across: x 1.7 m ahead, y -0.5..0.5
+    yy, zz = np.meshgrid(np.arange(-0.5, 0.51, 0.025), np.arange(0.3, 1.01, 0.05))
+    blob = np.column_stack([np.full(yy.size, 4.0 - start[0]), yy.ravel(), zz.ravel()])
     try:
         client = goal_client(rospy)
         assert wait_for(plan_ok, 20, 0.5), "no plan through the open doorway"
-        pub_pts.publish(arrays_to_pointcloud2({}, rospy.Time.now(), "map", xyz=blob))
+        pub_bumper.publish(arrays_to_pointcloud2({}, rospy.Time.now(), "base_link", xyz=blob))
         blocked = wait_for(lambda: not plan_ok(), 20, 0.5)
-        # the map cloud loses the points; the layer keeps them
-        pub_pts.publish(arrays_to_pointcloud2({}, rospy.Time.now(), "map", xyz=wall_pt))
+        # the bumper's next cloud has no contact; the layer keeps the old ones
+        pub_bumper.publish(arrays_to_pointcloud2({}, rospy.Time.now(), "base_link",
+                                                 xyz=np.zeros((0, 3))))
         time.sleep(3.0)
         still_blocked = not plan_ok()
         client.send_goal(goal(6.5, 2.0))
@@ -594,18 +597,79 @@ def test_recovery_clears_a_stale_obstacle(rospy_client, start_process, grid_publ
     finally:
         recoveries.stop()
         robot.stop()
-        pub_pts.unregister()
+        pub_bumper.unregister()
         launch.stop()
     names = [m.recovery_behavior_name for _, m in recoveries.msgs]
     cleared = sorted({ln.split("clear layer")[-1].strip(" '") for ln in
                       log_lines(launch, "Recovery behavior will clear layer")})
-    print("doorway blocked by map points: %s, still after they left the map cloud: %s; "
+    print("doorway blocked by bumper contacts: %s, still after the bumper let go: %s; "
           "recoveries run %s; goal %s, robot at (%.2f, %.2f); %s"
           % (blocked, still_blocked, names, state_name(state), end[0], end[1], cleared))
     assert blocked and still_blocked
     assert names and names[0] == "conservative_reset"
     assert state == GoalStatus.SUCCEEDED
     assert end[0] > 6.0
+
+
+def test_global_costmap_follows_a_wall_the_map_moved(rospy_client, start_process, grid_publisher):
+    """A loop correction moves a partition of the map 0.6 m: the fusion node republishes its grid
+    and its cloud with the partition in the new place. The global costmap follows: the old place
+    is no longer an obstacle. Marked from the map cloud, as the obstacle layer did, the old place
+    stayed lethal (the layer keeps every mark of a cloud in ``map``, which cannot clear), and a
+    robot beside it in a corridor of such remnants stood walled in with no plan out."""
+    from nav_msgs.msg import OccupancyGrid
+    from sensor_msgs.msg import PointCloud2
+    from mdr_slam.conversions import arrays_to_pointcloud2
+    rospy = rospy_client
+    room = [(0, 0, 6, 0), (6, 0, 6, 4), (6, 4, 0, 4), (0, 4, 0, 0)]
+    pub_pts = rospy.Publisher("/mdr/map/points", PointCloud2, queue_size=1, latch=True)
+    costmaps = Recorder(rospy, "/move_base/global_costmap/costmap", OccupancyGrid)
+    full = "/move_base/global_costmap/always_send_full_costmap"
+    rospy.set_param(full, True)
+
+    def publish_map(y):
+        """The grid and the cloud of the room with the partition x 1-4 at y, as the node sends."""
+        g, origin = wall_grid(room + [(1, y, 4, y)], (-0.5, -0.5), (6.5, 4.5))
+        grid_publisher.publish(g, origin)
+        xs, zs = np.meshgrid(np.arange(1.0, 4.0, 0.05), np.arange(0.3, 1.01, 0.1))
+        pts = np.column_stack([xs.ravel(), np.full(xs.size, y), zs.ravel()])
+        pub_pts.publish(arrays_to_pointcloud2({}, rospy.Time.now(), "map", xyz=pts))
+
+    def cost_at(x, y):
+        """The highest cost (0-100) of the latest global costmap within a cell of (x, y)."""
+        if not costmaps.msgs:
+            return None
+        c, o, res = msg_grid(costmaps.msgs[-1][1])
+        xx, yy = np.meshgrid(np.arange(x - res, x + res * 1.01, res / 2),
+                             np.arange(y - res, y + res * 1.01, res / 2))
+        r, cc, inside = cells_of(np.column_stack([xx.ravel(), yy.ravel()]), o, res, c.shape)
+        return int(c[r[inside], cc[inside]].max()) if inside.any() else None
+
+    publish_map(2.0)                              # latched: move_base starts on it
+    robot = FakeRobot(rospy, (0.5, 0.5, 0.0))     # no camera: nothing clears but the map
+    launch = start_move_base(start_process)
+    try:
+        goal_client(rospy)
+        publish_map(2.0)                          # again, now that every layer listens
+        before = wait_for(lambda: cost_at(2.5, 2.0) == 100, 60, 0.5)
+        time.sleep(3.0)                           # the global costmap updates at 1 Hz
+        publish_map(2.6)                          # the correction
+        moved = wait_for(lambda: cost_at(2.5, 2.6) == 100, 60, 0.5)
+        time.sleep(5.0)                           # a few more updates and publishes
+        costmaps.msgs.clear()
+        assert wait_for(lambda: costmaps.msgs, 30, 0.2)
+        old, new = cost_at(2.5, 2.0), cost_at(2.5, 2.6)
+    finally:
+        costmaps.stop()
+        robot.stop()
+        pub_pts.unregister()
+        launch.stop()
+        rospy.delete_param(full)
+    print("global costmap: partition at y 2.0 lethal %s; after it moved to y 2.6 (lethal %s): "
+          "cost at the old place %s, at the new %s" % (before, moved, old, new))
+    assert before and moved
+    assert new == 100
+    assert old is not None and old < 99                  # neither lethal nor inscribed
 
 
 def test_local_costmap_keeps_the_seen_walls_through_a_map_to_odom_jump(rospy_client, start_process,

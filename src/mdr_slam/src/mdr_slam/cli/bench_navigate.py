@@ -285,6 +285,50 @@ def _grid_score(grid, tg, T_world_map: np.ndarray, path_xy: np.ndarray) -> dict:
             "recall_within_%gm" % RECALL_RANGE: round(recall, 3)}
 
 
+def _costmap_at_miss(rospy, path: str, T_map_base, timeout: float = 15.0) -> Optional[str]:
+    """Save move_base's global costmap as the planner saw it when a goal was missed, with the base's
+    estimated pose in it (``DIR/<scene>/miss_<k>_costmap.npz`` and ``.png``): a miss then shows
+    whether the base stood walled in by cost. costmap_2d sends the whole costmap to each new
+    subscriber, so one subscription is one snapshot."""
+    from nav_msgs.msg import OccupancyGrid
+    got = []
+    done = threading.Event()
+
+    def on_costmap(m):
+        if not got:
+            got.append(m)
+            done.set()
+    sub = rospy.Subscriber("move_base/global_costmap/costmap", OccupancyGrid, on_costmap,
+                           queue_size=1, buff_size=1 << 24)
+    done.wait(timeout)
+    sub.unregister()
+    if not got:
+        return None
+    m = got[0]
+    cost = np.asarray(m.data, np.int16).reshape(m.info.height, m.info.width)
+    origin = np.array([m.info.origin.position.x, m.info.origin.position.y])
+    res = float(m.info.resolution)
+    base = np.asarray(T_map_base[:2, 3], float) if T_map_base is not None else None
+    np.savez(path + ".npz", cost=cost, origin=origin, resolution=res,
+             frame=m.header.frame_id, base_xy=base if base is not None else np.zeros(0))
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(6, 6))
+    ext = (origin[0], origin[0] + cost.shape[1] * res, origin[1], origin[1] + cost.shape[0] * res)
+    ax.imshow(np.where(cost < 0, np.nan, cost), origin="lower", extent=ext, cmap="viridis",
+              vmin=0, vmax=100)
+    if base is not None:
+        ax.plot(*base, "r+", ms=12)
+        ax.set_xlim(base[0] - 2.0, base[0] + 2.0)
+        ax.set_ylim(base[1] - 2.0, base[1] + 2.0)
+    ax.set_title("global costmap at the miss (0-100; robot +)")
+    fig.tight_layout()
+    fig.savefig(path + ".png", dpi=100)
+    plt.close(fig)
+    return path + ".npz"
+
+
 def _top_view(path: str, scene_name: str, tg, grid, T_world_map, true_xy, goals, records):
     import matplotlib
     matplotlib.use("Agg")
@@ -455,6 +499,15 @@ def run_scene(args, scene_name: str, out_dir: str) -> dict:
                                         else "timeout"),
                        true_goal_distance_m=round(end_d, 3), plans=len(plans),
                        time_limit_s=round(limit, 1))
+            if not reached:
+                try:
+                    T_mb = transform_stamped_to_matrix(buf.lookup_transform(
+                        "map", "base_link", rospy.Time(0)))
+                except tf2_ros.TransformException:
+                    T_mb = None
+                snap = _costmap_at_miss(rospy, os.path.join(out_dir, "miss_%d_costmap" % k), T_mb)
+                if snap:
+                    rec["costmap_at_miss"] = os.path.relpath(snap, os.path.dirname(out_dir))
             records.append(rec)
             print("  %s goal %d/%d: %s in %.1f s (path %.1f m, shortest %.1f m), %d collisions, "
                   "clearance %.2f m, %d/%d plans through occupied, loc err %s (from the start "

@@ -95,7 +95,7 @@ class FusionNodeConfig(Config):
     # output
     publish_rate: float = 1.0       # Hz of /mdr/map/points and /mdr/map/grid (when changed); 0: never
     display_voxel: float = 0.05     # m, display downsampling of /mdr/map/points; 0: every point
-    display_min_confidence: int = 3  # /mdr/map/points; keep >= grid_min_confidence (move_base marks these)
+    display_min_confidence: int = 3  # /mdr/map/points; keep >= grid_min_confidence (shows the grid's obstacles)
     publish_grid: bool = True       # /mdr/map/grid (nav_msgs/OccupancyGrid) for move_base
     publish_nav_grid: bool = True   # /mdr/map/nav_grid: the same grid, unknown cells free (move_base's
                                     # static layer: config/navigation/costmap_common_params.yaml)

@@ -95,8 +95,8 @@ class FusionNode:
         if map_cfg.confidence and cfg.publish_grid and \
                 cfg.display_min_confidence < cfg.grid_min_confidence:
             rospy.logwarn("fusion_node: display_min_confidence %s < grid_min_confidence %s: "
-                          "/mdr/map/points has points the grid does not mark occupied (move_base's "
-                          "obstacle layer would mark them and never clear them)",
+                          "/mdr/map/points shows points the grid (move_base's map) does not mark "
+                          "occupied",
                           cfg.display_min_confidence, cfg.grid_min_confidence)
         self.lock = threading.RLock()
         self.map = VoxelMap(map_cfg)
