@@ -16,8 +16,9 @@ its own map; goals are placed on the map the same way, as a user picks them on i
 final map and grid against the scene (map points within 5 cm of a true surface; occupied grid
 cells within one cell of a true obstacle; true obstacle cells within ``RECALL_RANGE`` m of the
 path the grid holds), the stack's CPU and RSS (every process, move_base included: median and
-max), and a top view. Writes ``DIR/navigation.json``, ``DIR/navigation.md`` and
-``DIR/<scene>/top.png``; each scene's launch logs in ``DIR/<scene>/``.
+max), and a top view. Writes ``DIR/navigation.json``, ``DIR/navigation.md``,
+``DIR/<scene>/top.png`` and, for each missed goal k, move_base's global costmap then
+(``DIR/<scene>/miss_<k>_costmap.npz`` and ``.png``); each scene's launch logs in ``DIR/<scene>/``.
 """
 from __future__ import annotations
 
