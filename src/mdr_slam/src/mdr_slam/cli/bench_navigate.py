@@ -305,10 +305,10 @@ def _costmap_at_miss(rospy, path: str, T_map_base, timeout: float = 15.0) -> Opt
     sub.unregister()
     if not got:
         return None
+    from ..nav import grid_from_msg
     m = got[0]
-    cost = np.asarray(m.data, np.int16).reshape(m.info.height, m.info.width)
-    origin = np.array([m.info.origin.position.x, m.info.origin.position.y])
-    res = float(m.info.resolution)
+    cost, origin, res = grid_from_msg(m)
+    origin = np.asarray(origin, float)
     base = np.asarray(T_map_base[:2, 3], float) if T_map_base is not None else None
     np.savez(path + ".npz", cost=cost, origin=origin, resolution=res,
              frame=m.header.frame_id, base_xy=base if base is not None else np.zeros(0))
