@@ -1133,6 +1133,33 @@ def test_proximity_refuses_a_false_candidate(orbit_proximity_run):
         cand.set_pose(T0)
 
 
+def test_a_loop_correction_must_line_up_the_loop_keyframes_points(orbit_loop):
+    """correction_fits_map, on the orbit mapped without loop closing (the map is consistent:
+    the last keyframes re-map the first views with points of their own): the uncorrected
+    projection of the first keyframe's neighbourhood finds the last keyframe's keypoints, so a
+    look-alike correction (0.5 m and 10 deg; wrong proximity verifications on a simulated
+    office moved keyframes 0.8-1.4 m and 15-22 deg) is refused and recorded. Where the last
+    keyframe had drifted 0.3 m and 5 deg, the correction that undoes it finds twice as many."""
+    s = _loop_run(orbit_loop[1], LOOP_PROXIMITY=False)
+    lc, mp = s.loop_closing, s.map
+    assert lc.loops == []
+    kfs = sorted(mp.good_keyframes(), key=lambda k: k.id)
+    kf = kfs[-1]
+    cand = min(kfs[:5], key=lambda k: np.linalg.norm(k.T_wc[:3, 3] - kf.T_wc[:3, 3]))
+    wrong = make_T(Rotation.from_euler("y", 10.0, degrees=True).as_matrix(), [0.5, 0.0, 0.0])
+    assert not lc.correction_fits_map(kf, cand, wrong)
+    _, _, before, after, shift, ok = lc.correction_checks[-1]
+    assert not ok and before >= 20 and after < before and shift > 12, lc.correction_checks[-1]
+    T0 = kf.T_cw.copy()
+    drift = make_T(Rotation.from_euler("y", 5.0, degrees=True).as_matrix(), [0.3, 0.0, 0.1])
+    kf.set_pose(T0 @ inv_T(drift))      # T_wc' = drift T_wc
+    S = inv_T(T0) @ kf.T_cw             # the world correction: S T_wc' = T_wc
+    assert lc.correction_fits_map(kf, cand, S), lc.correction_checks[-1]
+    _, _, before, after, shift, ok = lc.correction_checks[-1]
+    assert ok and after >= 2 * before and shift > 12, lc.correction_checks[-1]
+    assert len(lc.correction_checks) == 2
+
+
 def test_proximity_needs_both_sides_to_agree(orbit_proximity_run, monkeypatch):
     """When the candidate's own keypoints tracked into kf give a pose too, it must agree
     with kf's (``loop_proximity_two_way_deg`` / ``_m``); a verification from one side whose

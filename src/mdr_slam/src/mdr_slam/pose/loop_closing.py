@@ -92,6 +92,11 @@ LOOP_PROXIMITY_TWO_WAY_DEG = 2.0    # agree within this rotation ...
 LOOP_PROXIMITY_TWO_WAY_M = 0.5      # ... and translation (m)
 
 
+LOOP_MAP_CHECK = True          # a loop is closed only when the loop keyframe's neighbourhood matches the
+LOOP_MAP_SMALL_RATIO = 0.9     # current keyframe with the correction at least this x as often as without
+                               # it when the correction moves its projections by at most
+LOOP_MAP_SMALL_PX = 12.0       # this (median, px: the projection search's window), where both poses
+LOOP_MAP_LARGE_RATIO = 2.0     # find the same points; beyond it, at least this x as often
 LOOP_ODOM_GATE_M = 0.1          # a loop may leave the map this far from the wheel odometry's motion
 LOOP_ODOM_GATE_REL = 0.05       # ... + this x the odometry's path between the two keyframes (m) ...
 LOOP_ODOM_GATE_DEG = 2.0        # ... and turned this far + DEG_PER_M x that path, unless it was farther
@@ -207,6 +212,7 @@ class LoopClosing:
         self.proximity_loops: List[tuple] = []     # accepted by the proximity path (kf, cand, inliers)
         self.odom_checks: List[tuple] = []         # (kf, cand, odometry path m, m and deg off it
         #                                            before / after the correction, accepted)
+        self.correction_checks: List[tuple] = []   # correction_fits_map (kf, cand, n before, after, px, ok)
         self.proximity_tries = 0                   # proximity verifications run (LK + PnP)
         self.one_way: List[tuple] = []             # refused by the two-way check (kf, cand, m, deg)
         self._exclude: set = set()
@@ -392,7 +398,8 @@ class LoopClosing:
             if res is None:
                 continue
             S, cur_ids, loop_ids, new_kp, new_ids = res
-            if not self.plausible_correction(kf, cand, S):
+            if not self.plausible_correction(kf, cand, S) or \
+                    not self.correction_fits_map(kf, cand, S):
                 continue
             self.correct_loop(kf, cand, S, cur_ids, loop_ids, new_kp, new_ids)
             self.consistent_groups = []
@@ -545,6 +552,8 @@ class LoopClosing:
             if n_inl < int(LOOP_PROXIMITY_MIN_INLIERS) and \
                     not self._weak_consistent(kf, S):
                 continue
+            if not self.correction_fits_map(kf, cand, S):
+                continue
             # point fusion: kf's map points whose track ends on a cand keypoint with a map point
             d, j = cand.tree.query(uv)
             near = d < 2.0
@@ -591,6 +600,41 @@ class LoopClosing:
             ok = self.odometry_agrees(kf, cand, S)
         if not ok:
             self.rejected.append((kf.id, cand.id, moved, rot, path))
+        return ok
+
+    def correction_fits_map(self, kf, cand, S) -> bool:
+        """The loop keyframe's neighbourhood (cand and its best covisibles, as the guided search
+        of ComputeSim3) is projected into the current keyframe with and without the correction
+        S, and each pose's matches are counted as SearchAndFuse would find them. Where the map
+        drifted by more than the search window, the uncorrected projections miss their
+        keypoints and the correction finds them: it must match at least LOOP_MAP_LARGE_RATIO x
+        as many. Where the uncorrected pose
+        already lines up with those points the map is consistent there, and a large correction
+        is a look-alike verification (Lucas-Kanade locked onto a repeated texture 20 deg off, a
+        BoW match on far points). A correction within the window (median LOOP_MAP_SMALL_PX)
+        finds the same points as no correction, and needs LOOP_MAP_SMALL_RATIO x as many. Not in
+        ORB-SLAM2, whose loops need three consistent BoW detections. ``correction_checks``
+        keeps (kf id, cand id, matches uncorrected, matches corrected, median shift px, closed)."""
+        if not LOOP_MAP_CHECK:
+            return True
+        mp = self.map
+        local = [cand] + mp.best_covisibles(cand, 10)
+        pts = np.unique(np.concatenate([k.valid_mp_ids(mp.mp_bad) for k in local]))
+        poses = (kf.T_cw, kf.T_cw @ inv_T(S))
+        # Fuse's test (TH_LOW, the reprojection chi2, any keypoint): a point counts where it lands
+        # on a keypoint like its own, whether kf made a point of that keypoint or not
+        n = [len(self.matcher.fuse(kf, mp, pts, T_cw=T, th=3.0)[0]) for T in poses]
+        uv = []
+        for T in poses:
+            Pc = mp.mp_pos[pts] @ T[:3, :3].T + T[:3, 3]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                uv.append((Pc[:, :2] / Pc[:, 2:3] * [kf.fx, kf.fy], Pc[:, 2] > 0.1))
+        both = uv[0][1] & uv[1][1]
+        shift = float(np.median(np.linalg.norm(uv[1][0][both] - uv[0][0][both], axis=1))) \
+            if np.any(both) else np.inf
+        ratio = LOOP_MAP_SMALL_RATIO if shift <= LOOP_MAP_SMALL_PX else LOOP_MAP_LARGE_RATIO
+        ok = n[1] >= float(ratio) * n[0]
+        self.correction_checks.append((kf.id, cand.id, int(n[0]), int(n[1]), round(shift, 1), ok))
         return ok
 
     def odometry_agrees(self, kf, cand, S) -> bool:
