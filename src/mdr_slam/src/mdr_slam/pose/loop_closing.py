@@ -42,7 +42,7 @@ from typing import Dict, List, Optional
 import cv2
 import numpy as np
 
-from ..geometry import inv_T, rotation_angle
+from ..geometry import inv_T, rotation_angle, transform_points
 from .ba_process import BAWorker
 from .matcher import ORBmatcher, _unique_by
 from .optimizer import Optimizer, global_bundle_adjustment, normalize_pose
@@ -91,12 +91,11 @@ LOOP_PROXIMITY_TWO_WAY = True       # the candidate's keypoints tracked into the
 LOOP_PROXIMITY_TWO_WAY_DEG = 2.0    # agree within this rotation ...
 LOOP_PROXIMITY_TWO_WAY_M = 0.5      # ... and translation (m)
 
+LOOP_MAP_CHECK = True          # a loop keyframe's neighbourhood must line up with the current keyframe
+LOOP_MAP_LARGE_RATIO = 2.0     # this x as often with the correction as without it ...
+LOOP_MAP_SMALL_RATIO = 0.9     # ... or this x when the correction moves the projections by at most
+LOOP_MAP_SMALL_PX = 12.0       # this (median px, the search window: both poses find the same points)
 
-LOOP_MAP_CHECK = True          # a loop is closed only when the loop keyframe's neighbourhood matches the
-LOOP_MAP_SMALL_RATIO = 0.9     # current keyframe with the correction at least this x as often as without
-                               # it when the correction moves its projections by at most
-LOOP_MAP_SMALL_PX = 12.0       # this (median, px: the projection search's window), where both poses
-LOOP_MAP_LARGE_RATIO = 2.0     # find the same points; beyond it, at least this x as often
 LOOP_ODOM_GATE_M = 0.1          # a loop may leave the map this far from the wheel odometry's motion
 LOOP_ODOM_GATE_REL = 0.05       # ... + this x the odometry's path between the two keyframes (m) ...
 LOOP_ODOM_GATE_DEG = 2.0        # ... and turned this far + DEG_PER_M x that path, unless it was farther
@@ -608,9 +607,8 @@ class LoopClosing:
         S, and each pose's matches are counted as SearchAndFuse would find them. Where the map
         drifted by more than the search window, the uncorrected projections miss their
         keypoints and the correction finds them: it must match at least LOOP_MAP_LARGE_RATIO x
-        as many. Where the uncorrected pose
-        already lines up with those points the map is consistent there, and a large correction
-        is a look-alike verification (Lucas-Kanade locked onto a repeated texture 20 deg off, a
+        as many. Where the uncorrected pose already lines up with those points the map is
+        consistent there, and a large correction is a look-alike verification (Lucas-Kanade locked onto a repeated texture 20 deg off, a
         BoW match on far points). A correction within the window (median LOOP_MAP_SMALL_PX)
         finds the same points as no correction, and needs LOOP_MAP_SMALL_RATIO x as many. Not in
         ORB-SLAM2, whose loops need three consistent BoW detections. ``correction_checks``
@@ -624,14 +622,12 @@ class LoopClosing:
         # Fuse's test (TH_LOW, the reprojection chi2, any keypoint): a point counts where it lands
         # on a keypoint like its own, whether kf made a point of that keypoint or not
         n = [len(self.matcher.fuse(kf, mp, pts, T_cw=T, th=3.0)[0]) for T in poses]
-        uv = []
-        for T in poses:
-            Pc = mp.mp_pos[pts] @ T[:3, :3].T + T[:3, 3]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                uv.append((Pc[:, :2] / Pc[:, 2:3] * [kf.fx, kf.fy], Pc[:, 2] > 0.1))
-        both = uv[0][1] & uv[1][1]
-        shift = float(np.median(np.linalg.norm(uv[1][0][both] - uv[0][0][both], axis=1))) \
-            if np.any(both) else np.inf
+        P0, P1 = (transform_points(T, mp.mp_pos[pts]) for T in poses)
+        front = (P0[:, 2] > 0.1) & (P1[:, 2] > 0.1)
+        f = np.array([kf.fx, kf.fy])
+        shift = float(np.median(np.linalg.norm(
+            (P1[front, :2] / P1[front, 2:] - P0[front, :2] / P0[front, 2:]) * f, axis=1))) \
+            if np.any(front) else np.inf
         ratio = LOOP_MAP_SMALL_RATIO if shift <= LOOP_MAP_SMALL_PX else LOOP_MAP_LARGE_RATIO
         ok = n[1] >= float(ratio) * n[0]
         self.correction_checks.append((kf.id, cand.id, int(n[0]), int(n[1]), round(shift, 1), ok))
