@@ -302,6 +302,30 @@ def test_elas_only_baseline_returns_every_valid_pixel():
     np.testing.assert_allclose(render_depth(out.points, cam)[v, u], Z[v, u], rtol=1e-5)
 
 
+def test_single_frame_points_need_no_pose_and_leave_the_filter_alone():
+    """While the tracker is LOST the depth node publishes one measurement's points for obstacle
+    sensing: those of sigma_Z <= max_sigma, in the camera, the filter's keyframe untouched."""
+    cam = tiny_camera()
+    rng = np.random.default_rng(7)
+    f = DepthFilter(cam, {"stride": 1})
+    for i in range(4):
+        f.process(0.1 * i, pose(), *noisy_measurement(cam, pose(), rng))
+    kf, mu = f.keyframe, f.keyframe.mu.copy()
+    Z, var = noisy_measurement(cam, pose(), rng)
+    Z[:, :32] *= 1.6                       # the left half farther away: larger sigma_Z
+    var[:, :32] *= 1.6 ** 4
+    smax = float(np.sqrt(np.nanmax(var[:, 32:]))) * 1.01
+    assert smax < float(np.sqrt(np.nanmin(var[:, :32])))
+    out = f.single_frame(Z, var, max_sigma=smax)
+    v, u = np.nonzero(np.isfinite(Z) & (var <= smax ** 2))
+    assert len(out) == len(u) == Z.shape[0] * 32
+    np.testing.assert_allclose(out.points, cam.backproject(u, v, Z[v, u]), rtol=1e-5)
+    assert np.all(out.n_obs == 1) and len(f.single_frame(Z, var)) == Z.size
+    assert f.keyframe is kf and np.array_equal(f.keyframe.mu, mu, equal_nan=True)
+    with pytest.raises(ValueError):
+        f.single_frame(Z[:, :10], var[:, :10])
+
+
 def test_stride_option_and_refused_parameters():
     cam = tiny_camera()
     rng = np.random.default_rng(7)

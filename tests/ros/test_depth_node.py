@@ -209,15 +209,25 @@ def test_depth_node_max_rate_and_a_pose_that_arrives_after_the_images(rospy_clie
     sub.unregister()
 
 
-def test_depth_node_pauses_while_the_tracker_is_lost(rospy_client, start_process):
-    """Pairs stamped while the pose node reports LOST get no pose: they are not matched at all
-    (counted as paused_lost); the first OK report resumes matching."""
+@pytest.mark.parametrize("lost_rate", [2.0, 0.0])
+def test_depth_node_pauses_while_the_tracker_is_lost(rospy_client, start_process, lost_rate):
+    """Pairs stamped while the pose node reports LOST get no pose: the filter pauses (nothing on
+    /mdr/depth/points, the rest counted as paused_lost) and the first OK report resumes it.
+    Meanwhile ``lost_cloud_rate`` pairs a second are matched and their single-frame points go to
+    /mdr/depth/raw_points (obstacle sensing while the base drives on odometry), and an empty
+    cloud there ends the LOST stretch, so that a costmap does not keep re-marking the last one.
+    ``lost_cloud_rate: 0``: nothing is matched while LOST."""
     rospy = rospy_client
     from mdr_slam_msgs.msg import TrackingState
-    state_pub = rospy.Publisher("/dn4/state", TrackingState, queue_size=10)
-    node, got, sub, pose_pub, sp = _pose_topic_rig(rospy, start_process, "depth_test4", "/dn4/",
-                                                   "_tracking_state_topic:=/dn4/state",
-                                                   others=[state_pub])
+    from sensor_msgs.msg import PointCloud2
+    ns = "/dn4%d/" % int(lost_rate)
+    state_pub = rospy.Publisher(ns + "state", TrackingState, queue_size=10)
+    raw = []
+    raw_sub = rospy.Subscriber(ns + "raw", PointCloud2, raw.append)
+    node, got, sub, pose_pub, sp = _pose_topic_rig(
+        rospy, start_process, "depth_test4%d" % int(lost_rate), ns,
+        "_tracking_state_topic:=%sstate" % ns, "_lost_cloud_rate:=%g" % lost_rate,
+        "/mdr/depth/raw_points:=%sraw" % ns, others=[state_pub] + ([raw_sub] if lost_rate else []))
     left, right = _pair()
     base = rospy.Time.now()
 
@@ -234,13 +244,25 @@ def test_depth_node_pauses_while_the_tracker_is_lost(rospy_client, start_process
 
     ok1 = frame(0, TrackingState.OK)
     assert wait_for(lambda: len(got) >= 1, 10), node.output()
-    for i in (1, 2, 3):
-        frame(i, TrackingState.LOST)
+    lost = [frame(i, TrackingState.LOST) for i in (1, 2, 3)]
+    if lost_rate:   # 2 Hz of pairs 0.1 s apart: the first of the three
+        assert wait_for(lambda: len(raw) >= 1, 10), node.output()
     ok2 = frame(4, TrackingState.OK)
     assert wait_for(lambda: len(got) >= 2, 10), node.output()
+    if lost_rate:
+        assert wait_for(lambda: len(raw) >= 2, 10), node.output()
     rospy.sleep(0.5)
     assert [m.header.stamp for m in got] == [ok1, ok2], node.output()
+    if not lost_rate:
+        assert raw == []
+        return
+    assert [m.header.stamp for m in raw] == [lost[0], ok2], node.output()
+    assert raw[0].header.frame_id == FRAME and raw[1].header.frame_id == FRAME
+    P = cv.pointcloud2_to_xyz(raw[0])
+    assert len(P) > 1000 and np.median(P[:, 2]) == pytest.approx(1.25, abs=0.05)   # the wall
+    assert raw[1].width * raw[1].height == 0
     sub.unregister()
+    raw_sub.unregister()
 
 
 _ARENA = r"""

@@ -138,8 +138,15 @@ def test_costmap_parameters_match_the_fusion_grid():
     # the local costmap (odom) marks what the cameras see now, not the map cloud, whose marks
     # stay where an old map -> odom put them (tests/ros/test_move_base.py)
     assert [p["name"] for p in local["plugins"]] == names[1:]
-    assert local["obstacle_layer"]["observation_sources"].split() == ["mdr_depth", "bumper"]
+    assert local["obstacle_layer"]["observation_sources"].split() == \
+        ["mdr_depth", "mdr_depth_lost", "bumper"]
     assert local["obstacle_layer"]["mdr_depth"]["marking"] and srcs["mdr/depth/points"]["clearing"]
+    # while LOST: the depth node's single-frame cloud, in the local costmap (odom) only
+    lost = local["obstacle_layer"]["mdr_depth_lost"]
+    assert lost["topic"] == "mdr/depth/raw_points" and lost["marking"] and lost["clearing"]
+    assert lost["min_obstacle_height"] == fusion["grid_z_min"]
+    assert lost["max_obstacle_height"] == fusion["grid_z_max"]
+    assert "mdr/depth/raw_points" not in srcs
     # the costmap's own unknown cells are only those of a global costmap just resized (blank):
     # the planner must not cross them (tests/ros/test_move_base.py)
     assert glob["track_unknown_space"] and not mb["GlobalPlanner"]["allow_unknown"]

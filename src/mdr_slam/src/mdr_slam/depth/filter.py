@@ -567,10 +567,29 @@ class DepthFilter:
             self._planes = keep + [(n_w, d_w, lo, hi)]
         del self._planes[:-m]
 
-    def _elas_only(self, Zf, Vf, If, stats) -> DepthOutput:
-        """The ELAS-only baseline: every valid pixel of this frame (on the stride grid)."""
+    def single_frame(self, Z: np.ndarray, var: np.ndarray, intensity: Optional[np.ndarray] = None,
+                     max_sigma: float = float("inf")) -> DepthOutput:
+        """One measurement's points on the stride grid, in its camera, without a pose and
+        without touching the filter's state: what a depth node can still publish for obstacle
+        sensing while the tracker is LOST. ``max_sigma`` (m) drops the points whose sigma_Z is
+        larger (far or weakly textured pixels, where a single match is least reliable)."""
+        w, h = self.camera.size
+        if Z.shape != (h, w) or var.shape != (h, w):
+            raise ValueError("measurement is %s, camera is %dx%d" % (Z.shape, w, h))
+        Zf = np.asarray(Z, dtype=np.float32).ravel()
+        Vf = np.asarray(var, dtype=np.float32).ravel()
+        If = (np.zeros(h * w, np.float32) if intensity is None
+              else np.asarray(intensity, dtype=np.float32).reshape(-1))
+        stats = {"n_measured": int(np.count_nonzero(np.isfinite(Zf)))}
+        return self._elas_only(Zf, Vf, If, stats, max_sigma)
+
+    def _elas_only(self, Zf, Vf, If, stats, max_sigma: float = float("inf")) -> DepthOutput:
+        """The ELAS-only baseline: every valid pixel of this frame (on the stride grid) whose
+        sigma_Z is at most ``max_sigma``."""
         Zg = Zf[self._pix]
-        c = np.flatnonzero(np.isfinite(Zg))
+        with np.errstate(invalid="ignore"):
+            ok = np.isfinite(Zg) & ~(Vf[self._pix] > np.float32(max_sigma) ** 2)
+        c = np.flatnonzero(ok)
         z = Zg[c]
         P = np.stack([self._rx[c] * z, self._ry[c] * z, z], axis=1)
         stats.update(n_valid=int(len(c)), n_converged=int(len(c)), n_published=int(len(c)))

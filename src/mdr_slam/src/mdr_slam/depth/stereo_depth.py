@@ -117,6 +117,15 @@ class StereoDepth:
                                                c.sigma_d_texture, g2=g2)
         return measurement_from_disparity(disp, self.camera, sigma, c.min_depth, c.max_depth)
 
+    def single_frame(self, measurement: tuple, max_sigma: float = float("inf")) -> DepthOutput:
+        """``measure``'s result as points in the left camera, without a pose or the filter
+        (:meth:`DepthFilter.single_frame`): obstacle sensing while the tracker is LOST."""
+        Z, var, grey, t = measurement
+        out = self.filter.single_frame(Z, var, grey, max_sigma)
+        out.timings = dict(t)
+        out.depth = Z
+        return out
+
     def process(self, stamp: float, left: np.ndarray, right: np.ndarray, T_map_cam: np.ndarray,
                 rectified: bool = False, new_keyframe: Optional[bool] = None,
                 keyframe_id: Optional[int] = None) -> DepthOutput:

@@ -59,7 +59,10 @@ class DepthNodeConfig(Config):
     tf_timeout: float = 0.1             # s to wait for tf / for the pose of an image stamp
     max_future_stamp: float = 1.0       # s (sim time): drop pairs and tf further ahead of the clock; 0: off
     max_rate: float = 12.0              # Hz of stereo pairs matched, chosen by stamp; 0: every pair
-    tracking_state_topic: str = "mdr/tracking_state"  # no matching while the tracker is LOST; "": always
+    tracking_state_topic: str = "mdr/tracking_state"  # no filtering while the tracker is LOST; "": always
+    # Hz of single-frame clouds on mdr/depth/raw_points while the tracker is LOST (no pose for the
+    # filter), so that costmaps keep sensing obstacles; 0: nothing is matched while LOST
+    lost_cloud_rate: float = 2.0
     pose_max_gap: float = 0.25          # s between two cached poses to interpolate between them
     keyframe_topic: str = "mdr/keyframes"  # the pose node's keyframe events and corrections
     use_keyframe_events: bool = True    # follow the pose node's keyframes once it publishes any

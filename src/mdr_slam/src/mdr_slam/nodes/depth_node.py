@@ -10,7 +10,11 @@ Thin shell around :class:`mdr_slam.depth.StereoDepth`:
 - optional keyframe events and pose corrections from ``/mdr/keyframes`` (KeyFrameArray);
 - outputs ``/mdr/depth/points`` (PointCloud2 in the left optical frame at the image stamp, fields
   x y z intensity variance n_obs), optionally ``/mdr/depth/image`` (32FC1, metres), and rate,
-  latency and drops on ``/diagnostics``.
+  latency and drops on ``/diagnostics``;
+- while the pose node reports LOST, ``/mdr/depth/raw_points``: single-frame ELAS clouds (same
+  frame and fields, n_obs 1) at ``~lost_cloud_rate``, for costmaps' obstacle layers, and one
+  empty cloud when tracking resumes: costmap_2d re-marks a source's last cloud until a newer one
+  comes, and the last one of a LOST stretch would otherwise stay in the costmap for good.
 
 Two worker threads form a pipeline, so waiting for a frame's pose does not stall matching:
 ``depth_elas`` takes the newest pair (the callbacks only store it, so a slow frame drops the pairs
@@ -19,8 +23,11 @@ which needs no pose; ``depth_filter`` takes the matched pairs in stamp order, wa
 pose (the pose node is still tracking that frame) and runs the temporal filter and publishes.
 ``~max_rate`` (Hz, 0 = every pair) skips pairs by their stamps before any work: the keyframe
 filter needs no more, and on a 2-core robot the tracker needs the CPU more. While the pose node
-reports LOST (``~tracking_state_topic``), pairs are skipped too: they would get no pose, and the
-CPU is better spent on relocalization.
+reports LOST (``~tracking_state_topic``), pairs get no pose and the filter pauses; only
+``~lost_cloud_rate`` pairs a second are matched, and their single-frame points (sigma_Z at most
+``LOST_CLOUD_MAX_SIGMA``) go to ``/mdr/depth/raw_points``, so that a robot driving on wheel
+odometry meanwhile still sees what is in front of it; the rest of the CPU is relocalization's.
+The fusion node does not read that topic: a map needs the pose these clouds lack.
 Bad input is logged (throttled, one line per kind) and skipped; the node never dies on input.
 A bag loop (the clock jumping back) resets the filter and the tf buffer; pairs and transforms
 stamped more than ``~max_future_stamp`` ahead of the clock (the old lap's last ones, delivered
@@ -68,6 +75,10 @@ from .health import ProcessHealth, update_diagnostics
 from .memdebug import set_mmap_threshold, start_from_env
 from .stereo_input import StereoInput
 
+# m: the largest sigma_Z of a single-frame point published while LOST (about 3 m away at 0.5 px
+# on an 11 cm, 458 px rig; less on weak texture), where one match is good enough for a costmap
+LOST_CLOUD_MAX_SIGMA = 0.10
+
 
 class DepthNode:
     def __init__(self, cfg: DepthNodeConfig, depth_cfg: DepthConfig):
@@ -82,11 +93,14 @@ class DepthNode:
         self.camera_key = None
         self.fixed_camera = None
         self.counts = {"received": 0, "processed": 0, "dropped": 0, "skipped": 0, "published": 0,
-                       "throttled": 0, "paused_lost": 0, "future": 0}
+                       "throttled": 0, "paused_lost": 0, "future": 0,
+                       "lost_clouds": 0}
         self.lost_at = None                   # stamp of the pose node's last LOST report
+        self.lost_cloud_frame = None          # frame of the last raw cloud of this LOST stretch
         self.matched = collections.deque()    # ELAS done, waiting for the filter (stamp order)
         self.max_matched = 3                  # more: the filter stage is behind, drop the oldest
         self.limiter = StampRateLimiter(cfg.max_rate)
+        self.lost_limiter = StampRateLimiter(cfg.lost_cloud_rate)
         self.cpu_s = {"match": 0.0, "filter": 0.0}   # thread CPU of the two stages (diagnostics)
         self.generation = 0                   # +1 per filter reset: queued pairs of before are stale
         self.last_latency = float("nan")
@@ -102,6 +116,8 @@ class DepthNode:
         if cfg.calib:
             self.fixed_camera = self._load_calib(cfg.calib)
         self.pub_points = rospy.Publisher("mdr/depth/points", PointCloud2, queue_size=2)
+        self.pub_raw = (rospy.Publisher("mdr/depth/raw_points", PointCloud2, queue_size=2)
+                        if cfg.lost_cloud_rate > 0 and cfg.tracking_state_topic else None)
         self.pub_image = (rospy.Publisher("mdr/depth/image", Image, queue_size=2)
                           if cfg.publish_depth_image else None)
         self.input = StereoInput("depth_node", self.on_images, self.warn,
@@ -200,15 +216,16 @@ class DepthNode:
             t = left.header.stamp.to_sec()
             if self._from_the_future(t):
                 return
-            if self.lost_at is not None and abs(t - self.lost_at) < 1.0:
+            lost = self.lost_at is not None and abs(t - self.lost_at) < 1.0
+            if lost and (self.pub_raw is None or self.lost_limiter.skip(t)):
                 self.counts["paused_lost"] += 1   # no pose will come for it
                 return
-            if self.limiter.skip(t):   # max_rate
+            if not lost and self.limiter.skip(t):   # max_rate
                 self.counts["throttled"] += 1
                 return
             if self.pending is not None:
                 self.counts["dropped"] += 1   # the worker is busy: keep only the newest pair
-            self.pending = (left, right, linfo, rinfo, time.monotonic())
+            self.pending = (left, right, linfo, rinfo, time.monotonic(), lost)
             self.cv.notify()
 
     def _from_the_future(self, t: float) -> bool:
@@ -219,10 +236,17 @@ class DepthNode:
         return False
 
     def on_state(self, msg):
-        """The tracker's state per frame: LOST / NOT_INITIALIZED pause matching (see on_images)."""
+        """The tracker's state per frame: LOST / NOT_INITIALIZED pause the filter (on_images)."""
         lost = msg.state in (msg.LOST, msg.NOT_INITIALIZED)
         with self.cv:
             self.lost_at = msg.header.stamp.to_sec() if lost else None
+            frame, self.lost_cloud_frame = (None, self.lost_cloud_frame) if lost else \
+                (self.lost_cloud_frame, None)
+        if frame is not None:   # tracking resumed: the obstacle layers drop the last raw cloud
+            self.pub_raw.publish(arrays_to_pointcloud2(
+                {"intensity": np.zeros(0, np.float32), "variance": np.zeros(0, np.float32),
+                 "n_obs": np.zeros(0, np.uint32)}, stamp=msg.header.stamp, frame_id=frame,
+                xyz=np.zeros((0, 3), np.float32)))
 
     def on_pose(self, msg):
         try:
@@ -332,8 +356,9 @@ class DepthNode:
                                          self.pose_cache.latest))
         return T
 
-    def process(self, left, right, linfo, rinfo, t_recv):
-        """Stage 1 of one pair: stamp checks, camera, conversion, ELAS; queued for stage 2."""
+    def process(self, left, right, linfo, rinfo, t_recv, lost=False):
+        """Stage 1 of one pair: stamp checks, camera, conversion, ELAS; queued for stage 2, or
+        published at once as a single-frame cloud when it came while the tracker was ``lost``."""
         stamp = left.header.stamp
         t = stamp.to_sec()
         state = self.guard.check(t)
@@ -383,12 +408,29 @@ class DepthNode:
             self.warn("depth", "depth_node: input skipped: %s" % e)
             self.counts["skipped"] += 1
             return
+        if lost:
+            self.publish_lost_cloud(left.header, frame, meas)
+            return
         with self.cv:
             if len(self.matched) >= self.max_matched:
                 self.matched.popleft()
                 self.counts["dropped"] += 1
             self.matched.append((left.header, frame, meas, self.depth, self.generation))
             self.cv.notify_all()
+
+    def publish_lost_cloud(self, header, frame, meas):
+        """A pair matched while the tracker is LOST: its own points, on ``mdr/depth/raw_points``."""
+        out = self.depth.single_frame(meas, LOST_CLOUD_MAX_SIGMA)
+        frame_id = header.frame_id or frame
+        with self.cv:
+            if self.lost_at is None:   # tracking resumed while this pair was matched: stale
+                return
+            self.lost_cloud_frame = frame_id
+        self.pub_raw.publish(arrays_to_pointcloud2(
+            {"intensity": out.intensity, "variance": out.variance,
+             "n_obs": out.n_obs.astype(np.uint32)},
+            stamp=header.stamp, frame_id=frame_id, xyz=out.points))
+        self.counts["lost_clouds"] += 1
 
     def filter_and_publish(self, header, frame, meas, depth, generation):
         """Stage 2 of one pair: its pose (waiting for the pose node), the filter, publishing."""
