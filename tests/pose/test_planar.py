@@ -315,46 +315,6 @@ def test_a_tracked_step_the_wheel_odometry_contradicts_is_refused():
     assert t.n_odom_step_refused == n
 
 
-@pytest.mark.parametrize("reanchor", [True, False])
-def test_a_base_lost_past_the_map_starts_anew_at_the_odometry_pose(monkeypatch, reanchor):
-    """Tracked, then three seconds of blank images while the wheels go on, then a place the map
-    has never seen (the room's other texture): nothing there can relocalize. The tracker starts
-    the map anew at the pose the corrected odometry carried the last tracked one to
-    (Tracking.reanchor) and tracks on from there, within the odometry's error of the truth;
-    with reanchoring off it stays LOST."""
-    from mdr_slam.pose import tracking as tr
-    if not reanchor:
-        monkeypatch.setattr(tr, "REANCHOR_AFTER_S", 0.0)
-    seen, unseen = BoxRoom((3.0, 1.5, 3.0), tex_size=768, seed=3), \
-        BoxRoom((3.0, 1.5, 3.0), tex_size=768, seed=11)
-    poses = orbit_trajectory(60, radius=1.0, arc=np.pi)
-    stamps = [0.05 * i if i < 22 else 1.05 + 0.3 * (i - 21) if i < 32 else 4.05 + 0.05 * (i - 31)
-              for i in range(len(poses))]
-    s = System(CAM, config={"planar_motion": "auto"}, threads=False, T_map_cam0=T_BASE_CAM_LEVEL)
-    res = []
-    for i, (t, T_wc) in enumerate(zip(stamps, poses)):
-        room = seen if i < 22 else unseen
-        l, r = room.render_stereo(T_wc, CAM)
-        if 22 <= i < 32:
-            l, r = np.full_like(l, 128), np.full_like(r, 128)
-        f = s.make_frame(t, l, r)
-        T = inv_T(poses[0]) @ T_wc
-        T[:3, 3] *= 1.02
-        f.T_odom_cam = T_BASE_CAM_LEVEL @ T
-        res.append(s.track(f.stamp, frame=f))
-    s.shutdown()
-    states = [r.state for r in res]
-    assert states[:22].count("OK") == 22 and set(states[23:32]) == {"LOST"}, states
-    if not reanchor:
-        assert set(states[32:]) == {"LOST"}, states
-        return
-    assert states[32] == "RELOCALIZED" and set(states[33:]) == {"OK"}, states
-    assert s.tracking.n_reanchored == 1
-    for r, T_wc in zip(res[32:], poses[32:]):
-        truth = T_BASE_CAM_LEVEL @ inv_T(poses[0]) @ T_wc
-        assert np.linalg.norm(r.T_map_cam[:3, 3] - truth[:3, 3]) < 0.05
-
-
 def test_lost_frames_carry_the_pose_on_by_the_wheel_odometry():
     """Tracked, then blank images (LOST) while the wheels go on: the result has no tracked pose
     but the last tracked one carried on by the odometry (T_map_cam_coasted), where the base truly

@@ -220,11 +220,6 @@ class System:
             # corrected chain carries the pose while it is lost
             T_odom_base = frame.T_odom_cam @ inv_T(self.T_base_cam)
             self.odometry_calibration.correct(stamp, T_odom_base)
-            # where the corrected odometry puts the camera, for a LOST tracker to start anew from
-            # (Tracking.reanchor)
-            T = self.odometry_calibration.coasted()
-            frame.T_cw_coasted = None if T is None else \
-                inv_T(inv_T(self.T_map_world) @ T @ self.T_base_cam)
         out = self.tracking.track(frame)
         if out["is_keyframe"] and self.loop_closing is not None:   # proximity loop path
             self.loop_closing.keep_image(out["keyframe_id"], frame.image)

@@ -71,8 +71,6 @@ ODOMETRY_WINDOW_DEG = 5.0      # (and coasts on the odometry): on weak texture a
 ODOMETRY_WINDOW_DEG_PER_M = 2.0  # wrongly mapped patch drifts smoothly, under the per-frame gate
 ODOMETRY_COAST_S = 10.0        # ... and this long when the robot's odometry gives the motion (a blank
                                # wall through a turn in place: odometry drifts ~1-2 % over it)
-REANCHOR_AFTER_S = 2.0         # LOST this long with wheel odometry: a frame with MIN_INIT_POINTS stereo
-                               # points starts the map anew at the odometry's pose (0: never)
 MOTION_PRIOR_ACC = 4.0         # pose-only optimization pulled toward the constant-velocity prediction with
 MOTION_PRIOR_ANG_ACC = 120.0   # sigmas acc * dt^2 (m/s^2) and ang_acc * dt^2 (deg/s^2) (0: off, ORB-SLAM2)
 SHADING_MAX_SPREAD = 0.3       # inliers spanning less of the image width: the last frame's shading joins
@@ -150,7 +148,6 @@ class Tracking:
         self.n_keyframes_created = 0                   # by this run's frames (a loaded map's not counted)
         self.n_odom_refused = 0                        # poses (tracked, relocalized) the odometry contradicted
         self.last_odom_refusal = None                  # (stamp, m, deg, m travelled, points) of the last
-        self.n_reanchored = 0                          # keyframes started at the odometry's pose (reanchor)
         self.n_visual_odometry = 0                     # frames the map did not cover (track_visual_odometry)
         # (stamp, ref kf, T_c_ref, T_odom_cam) of the frames tracked OK lately (planar motion)
         self.odom_window: List[tuple] = []
@@ -228,10 +225,6 @@ class Tracking:
                 frame.ref_kf = self.ref_kf
                 if ok:
                     ok = self.track_local_map(frame)
-            if self.state == LOST and not ok and self.reanchor(frame):
-                # the frame becomes a keyframe of all its stereo points (as a visual-odometry one)
-                ok = relocalized = vo = True
-                self.n_reanchored += 1
             if ok:
                 self.state = RELOCALIZED if relocalized else OK
                 if self.last_frame is not None and self.last_frame.T_cw is not None:
@@ -459,29 +452,6 @@ class Tracking:
         if self.odometry_motion(frame) is not None:
             return frame.stamp - last.stamp <= float(ODOMETRY_COAST_S)
         return self.velocity is not None and frame.stamp - last.stamp <= float(LOST_COAST_S)
-
-    def reanchor(self, frame: Frame) -> bool:
-        """LOST for ``REANCHOR_AFTER_S`` on a wheeled base (not in ORB-SLAM2, whose tracker stays
-        LOST until it relocalizes in the map; ORB-SLAM3's Atlas starts a new, unconnected map):
-        the frame takes the pose the corrected wheel odometry carried the last tracked one to
-        (``frame.T_cw_coasted``, set by System) when it has ``MIN_INIT_POINTS`` stereo points,
-        and the caller makes it a keyframe of all of them. A robot that drove out of the mapped
-        area through a blank stretch (a corridor's bare walls) then maps and tracks where it now
-        is, instead of waiting, blind, until it sees a mapped place again; the odometry's few
-        centimetres over the stretch are what the new keyframes inherit, and a loop closure
-        later corrects. Never in localization mode (the map is not to change)."""
-        T = getattr(frame, "T_cw_coasted", None)
-        last = self.last_frame
-        if T is None or REANCHOR_AFTER_S <= 0 or self.system.localization or last is None or \
-                not frame.stamp - last.stamp >= float(REANCHOR_AFTER_S):
-            return False
-        if int(np.count_nonzero(frame.depth > 0)) < MIN_INIT_POINTS:
-            return False
-        frame.set_pose(T)
-        frame.mp_ids[:] = -1
-        frame.outlier[:] = False
-        self.n_matches_inliers = 0
-        return True
 
     def low_texture(self, frame: Frame) -> bool:
         """Few stereo keypoints (blank walls): thresholds written for 1000+ features relax."""
