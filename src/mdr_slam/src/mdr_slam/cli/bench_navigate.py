@@ -17,8 +17,9 @@ final map and grid against the scene (map points within 5 cm of a true surface; 
 cells within one cell of a true obstacle; true obstacle cells within ``RECALL_RANGE`` m of the
 path the grid holds), the stack's CPU and RSS (every process, move_base included: median and
 max), and a top view. Writes ``DIR/navigation.json``, ``DIR/navigation.md``,
-``DIR/<scene>/top.png`` and, for each missed goal k, move_base's global costmap then
-(``DIR/<scene>/miss_<k>_costmap.npz`` and ``.png``); each scene's launch logs in ``DIR/<scene>/``.
+``DIR/<scene>/top.png`` and, for each missed goal k, move_base's global and local costmaps then
+(``DIR/<scene>/miss_<k>_costmap.npz``, ``miss_<k>_local_costmap.npz`` and ``.png``); each scene's
+launch logs in ``DIR/<scene>/``.
 """
 from __future__ import annotations
 
@@ -286,11 +287,14 @@ def _grid_score(grid, tg, T_world_map: np.ndarray, path_xy: np.ndarray) -> dict:
             "recall_within_%gm" % RECALL_RANGE: round(recall, 3)}
 
 
-def _costmap_at_miss(rospy, path: str, T_map_base, timeout: float = 15.0) -> Optional[str]:
-    """Save move_base's global costmap as the planner saw it when a goal was missed, with the base's
-    estimated pose in it (``DIR/<scene>/miss_<k>_costmap.npz`` and ``.png``): a miss then shows
-    whether the base stood walled in by cost. costmap_2d sends the whole costmap to each new
-    subscriber, so one subscription is one snapshot."""
+def _costmap_at_miss(rospy, path: str, tf_buffer, base_frame: str, which: str = "global",
+                     timeout: float = 15.0) -> Optional[str]:
+    """Save one of move_base's costmaps (``which``: global, in map, or local, in odom) as it was
+    when a goal was missed, with the base's estimated pose in its frame
+    (``DIR/<scene>/miss_<k>_costmap.npz`` / ``miss_<k>_local_costmap.npz`` and ``.png``): a miss
+    then shows whether the base stood walled in by cost for the planner (global) or for DWA
+    (local). costmap_2d sends the whole costmap to each new subscriber, so one subscription is
+    one snapshot."""
     from nav_msgs.msg import OccupancyGrid
     got = []
     done = threading.Event()
@@ -299,7 +303,7 @@ def _costmap_at_miss(rospy, path: str, T_map_base, timeout: float = 15.0) -> Opt
         if not got:
             got.append(m)
             done.set()
-    sub = rospy.Subscriber("move_base/global_costmap/costmap", OccupancyGrid, on_costmap,
+    sub = rospy.Subscriber("move_base/%s_costmap/costmap" % which, OccupancyGrid, on_costmap,
                            queue_size=1, buff_size=1 << 24)
     done.wait(timeout)
     sub.unregister()
@@ -307,9 +311,16 @@ def _costmap_at_miss(rospy, path: str, T_map_base, timeout: float = 15.0) -> Opt
         return None
     from ..nav import grid_from_msg
     m = got[0]
+    import tf2_ros
+    from ..conversions import transform_stamped_to_matrix
+    try:   # the base in the costmap's own frame (map for the global one, odom for the local one)
+        T_frame_base = transform_stamped_to_matrix(tf_buffer.lookup_transform(
+            m.header.frame_id, base_frame, rospy.Time(0)))
+    except tf2_ros.TransformException:   # the picture without the base
+        T_frame_base = None
     cost, origin, res = grid_from_msg(m)
     origin = np.asarray(origin, float)
-    base = np.asarray(T_map_base[:2, 3], float) if T_map_base is not None else None
+    base = np.asarray(T_frame_base[:2, 3], float) if T_frame_base is not None else None
     np.savez(path + ".npz", cost=cost, origin=origin, resolution=res,
              frame=m.header.frame_id, base_xy=base if base is not None else np.zeros(0))
     import matplotlib
@@ -323,7 +334,7 @@ def _costmap_at_miss(rospy, path: str, T_map_base, timeout: float = 15.0) -> Opt
         ax.plot(*base, "r+", ms=12)
         ax.set_xlim(base[0] - 2.0, base[0] + 2.0)
         ax.set_ylim(base[1] - 2.0, base[1] + 2.0)
-    ax.set_title("global costmap at the miss (0-100; robot +)")
+    ax.set_title("%s costmap at the miss (0-100; robot +)" % which)
     fig.tight_layout()
     fig.savefig(path + ".png", dpi=100)
     plt.close(fig)
@@ -501,14 +512,11 @@ def run_scene(args, scene_name: str, out_dir: str) -> dict:
                        true_goal_distance_m=round(end_d, 3), plans=len(plans),
                        time_limit_s=round(limit, 1))
             if not reached:
-                try:
-                    T_mb = transform_stamped_to_matrix(buf.lookup_transform(
-                        "map", "base_link", rospy.Time(0)))
-                except tf2_ros.TransformException:
-                    T_mb = None
-                snap = _costmap_at_miss(rospy, os.path.join(out_dir, "miss_%d_costmap" % k), T_mb)
-                if snap:
-                    rec["costmap_at_miss"] = os.path.relpath(snap, os.path.dirname(out_dir))
+                for which, name in (("global", "costmap"), ("local", "local_costmap")):
+                    snap = _costmap_at_miss(rospy, os.path.join(out_dir, "miss_%d_%s" % (k, name)),
+                                            buf, "base_link", which)
+                    if snap:
+                        rec[name + "_at_miss"] = os.path.relpath(snap, os.path.dirname(out_dir))
             records.append(rec)
             print("  %s goal %d/%d: %s in %.1f s (path %.1f m, shortest %.1f m), %d collisions, "
                   "clearance %.2f m, %d/%d plans through occupied, loc err %s (from the start "
