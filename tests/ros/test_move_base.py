@@ -736,6 +736,79 @@ def test_local_costmap_keeps_the_seen_walls_through_a_map_to_odom_jump(rospy_cli
     assert inside is not None and inside < 99           # neither lethal nor inscribed
 
 
+def test_local_costmap_marks_the_lost_cloud_until_the_stretch_ends(rospy_client, start_process,
+                                                                   grid_publisher):
+    """While tracking is LOST the depth node's single-frame cloud (/mdr/depth/raw_points) is the
+    local costmap's only obstacle source: a box it shows 1 m ahead becomes lethal. costmap_2d
+    re-marks a source's last cloud at every update, so the filtered cloud seeing through the
+    box afterwards cannot clear it; the empty raw cloud that ends the LOST stretch lets it."""
+    from nav_msgs.msg import OccupancyGrid
+    from sensor_msgs.msg import PointCloud2
+    from mdr_slam.conversions import arrays_to_pointcloud2
+    rospy = rospy_client
+    walls = [(0, 0, 8, 0), (8, 0, 8, 4), (8, 4, 0, 4), (0, 4, 0, 0)]
+    g, origin = wall_grid(walls, (-0.5, -0.5), (8.5, 4.5))
+    grid_publisher.publish(g, origin)
+    pub_raw = rospy.Publisher("/mdr/depth/raw_points", PointCloud2, queue_size=1)
+    pub_depth = rospy.Publisher("/mdr/depth/points", PointCloud2, queue_size=1)
+    costmaps = Recorder(rospy, "/move_base/local_costmap/costmap", OccupancyGrid)
+    full = "/move_base/local_costmap/always_send_full_costmap"
+    rospy.set_param(full, True)
+    robot = FakeRobot(rospy, (2.0, 2.0, 0.0))
+    launch = start_move_base(start_process)
+    yy, zz = np.meshgrid(np.arange(-0.2, 0.21, 0.025), np.arange(0.3, 1.01, 0.05))
+    box = np.column_stack([np.full(yy.size, 1.0), yy.ravel(), zz.ravel()])     # base_link
+    beyond = box * np.array([1.8, 1.8, 1.0])          # the same rays, 1.8 m ahead: through the box
+
+    def box_cost():
+        """The highest cost (0-100) of the latest local costmap at the box, in odom."""
+        if not costmaps.msgs:
+            return None
+        c, o, res = msg_grid(costmaps.msgs[-1][1])
+        xx, yb = np.meshgrid(np.arange(2.95, 3.05, res / 2), np.arange(1.85, 2.15, res / 2))
+        r, cc, inside = cells_of(np.column_stack([xx.ravel(), yb.ravel()]), o, res, c.shape)
+        return int(c[r[inside], cc[inside]].max()) if inside.any() else None
+
+    def cloud(pub, xyz):
+        pub.publish(arrays_to_pointcloud2({}, rospy.Time.now(), "base_link", xyz=xyz))
+
+    def settled(expect_lethal, timeout=30):
+        def ok():
+            costmaps.msgs.clear()
+            time.sleep(1.0)                         # updates at 5 Hz, published at 2 Hz
+            b = box_cost()
+            return b is not None and (b == 100) == expect_lethal
+        return wait_for(ok, timeout, 0.1)
+    try:
+        goal_client(rospy)
+        assert wait_for(lambda: pub_raw.get_num_connections() > 0 and
+                        pub_depth.get_num_connections() > 0, 30), "move_base did not subscribe"
+        assert settled(False), "the box's place is not free before any cloud"
+        cloud(pub_raw, box)                           # LOST: the single-frame cloud shows the box
+        marked = settled(True)
+        for _ in range(5):                            # tracking back: the filtered cloud sees
+            cloud(pub_depth, beyond)                  # through it
+            time.sleep(0.5)
+        kept = box_cost()
+        cloud(pub_raw, np.zeros((0, 3)))              # the end of the LOST stretch
+        for _ in range(5):
+            cloud(pub_depth, beyond)
+            time.sleep(0.5)
+        cleared = settled(False)
+    finally:
+        costmaps.stop()
+        robot.stop()
+        pub_raw.unregister()
+        pub_depth.unregister()
+        launch.stop()
+        rospy.delete_param(full)
+    print("box from the LOST cloud lethal: %s; after the filtered cloud saw through it, cost %s; "
+          "after the empty LOST cloud, cleared: %s" % (marked, kept, cleared))
+    assert marked
+    assert kept == 100       # re-marked from the last raw cloud at every update
+    assert cleared
+
+
 # ---------------------------------------------------------------------- closed loop, fusion grid
 # a 10 x 7 m room split by a wall with a 2.5 m opening at its far end; the robot starts facing
 # the wall and is sent behind it
