@@ -97,6 +97,7 @@ class DepthNode:
                        "lost_clouds": 0}
         self.lost_at = None                   # stamp of the pose node's last LOST report
         self.lost_cloud_frame = None          # frame of the last raw cloud of this LOST stretch
+        self.raw_lock = threading.Lock()      # a raw cloud is never sent after the empty one
         self.matched = collections.deque()    # ELAS done, waiting for the filter (stamp order)
         self.max_matched = 3                  # more: the filter stage is behind, drop the oldest
         self.limiter = StampRateLimiter(cfg.max_rate)
@@ -238,15 +239,16 @@ class DepthNode:
     def on_state(self, msg):
         """The tracker's state per frame: LOST / NOT_INITIALIZED pause the filter (on_images)."""
         lost = msg.state in (msg.LOST, msg.NOT_INITIALIZED)
-        with self.cv:
-            self.lost_at = msg.header.stamp.to_sec() if lost else None
-            frame, self.lost_cloud_frame = (None, self.lost_cloud_frame) if lost else \
-                (self.lost_cloud_frame, None)
-        if frame is not None:   # tracking resumed: the obstacle layers drop the last raw cloud
-            self.pub_raw.publish(arrays_to_pointcloud2(
-                {"intensity": np.zeros(0, np.float32), "variance": np.zeros(0, np.float32),
-                 "n_obs": np.zeros(0, np.uint32)}, stamp=msg.header.stamp, frame_id=frame,
-                xyz=np.zeros((0, 3), np.float32)))
+        with self.raw_lock:
+            with self.cv:
+                self.lost_at = msg.header.stamp.to_sec() if lost else None
+                frame, self.lost_cloud_frame = (None, self.lost_cloud_frame) if lost else \
+                    (self.lost_cloud_frame, None)
+            if frame is not None:   # tracking resumed: the obstacle layers drop the last raw cloud
+                self.pub_raw.publish(arrays_to_pointcloud2(
+                    {"intensity": np.zeros(0, np.float32), "variance": np.zeros(0, np.float32),
+                     "n_obs": np.zeros(0, np.uint32)}, stamp=msg.header.stamp, frame_id=frame,
+                    xyz=np.zeros((0, 3), np.float32)))
 
     def on_pose(self, msg):
         try:
@@ -422,14 +424,15 @@ class DepthNode:
         """A pair matched while the tracker is LOST: its own points, on ``mdr/depth/raw_points``."""
         out = self.depth.single_frame(meas, LOST_CLOUD_MAX_SIGMA)
         frame_id = header.frame_id or frame
-        with self.cv:
-            if self.lost_at is None:   # tracking resumed while this pair was matched: stale
-                return
-            self.lost_cloud_frame = frame_id
-        self.pub_raw.publish(arrays_to_pointcloud2(
-            {"intensity": out.intensity, "variance": out.variance,
-             "n_obs": out.n_obs.astype(np.uint32)},
-            stamp=header.stamp, frame_id=frame_id, xyz=out.points))
+        msg = arrays_to_pointcloud2({"intensity": out.intensity, "variance": out.variance,
+                                     "n_obs": out.n_obs.astype(np.uint32)},
+                                    stamp=header.stamp, frame_id=frame_id, xyz=out.points)
+        with self.raw_lock:   # checked and sent before on_state can send the empty cloud
+            with self.cv:
+                if self.lost_at is None:   # tracking resumed while this pair was matched: stale
+                    return
+                self.lost_cloud_frame = frame_id
+            self.pub_raw.publish(msg)
         self.counts["lost_clouds"] += 1
 
     def filter_and_publish(self, header, frame, meas, depth, generation):
