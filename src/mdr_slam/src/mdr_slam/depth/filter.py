@@ -202,8 +202,7 @@ class DepthFilter:
                 intensity: Optional[np.ndarray] = None, new_keyframe: Optional[bool] = None,
                 keyframe_id: Optional[int] = None) -> DepthOutput:
         w, h = self.camera.size
-        if Z.shape != (h, w) or var.shape != (h, w):
-            raise ValueError("measurement is %s, camera is %dx%d" % (Z.shape, w, h))
+        Zf, Vf, If = self._flat_measurement(Z, var, intensity)
         if not is_valid_T(T_map_cam):
             raise ValueError("camera pose is not a finite rigid transform")
         T_map_cam = np.asarray(T_map_cam, dtype=float)
@@ -213,10 +212,6 @@ class DepthFilter:
             self.reset()
             stats["reset"] = 1
         self._last_stamp = stamp
-        Zf = np.asarray(Z, dtype=np.float32).ravel()
-        Vf = np.asarray(var, dtype=np.float32).ravel()
-        If = (np.zeros(h * w, np.float32) if intensity is None
-              else np.asarray(intensity, dtype=np.float32).reshape(-1))
         stats["n_measured"] = int(np.count_nonzero(np.isfinite(Zf)))
 
         if not self.cfg.temporal:
@@ -573,15 +568,20 @@ class DepthFilter:
         without touching the filter's state: what a depth node can still publish for obstacle
         sensing while the tracker is LOST. ``max_sigma`` (m) drops the points whose sigma_Z is
         larger (far or weakly textured pixels, where a single match is least reliable)."""
+        Zf, Vf, If = self._flat_measurement(Z, var, intensity)
+        stats = {"n_measured": int(np.count_nonzero(np.isfinite(Zf)))}
+        return self._elas_only(Zf, Vf, If, stats, max_sigma)
+
+    def _flat_measurement(self, Z, var, intensity):
+        """(Z, var, intensity) of one measurement as flat float32 arrays; ValueError when its
+        size is not the camera's."""
         w, h = self.camera.size
         if Z.shape != (h, w) or var.shape != (h, w):
             raise ValueError("measurement is %s, camera is %dx%d" % (Z.shape, w, h))
-        Zf = np.asarray(Z, dtype=np.float32).ravel()
-        Vf = np.asarray(var, dtype=np.float32).ravel()
         If = (np.zeros(h * w, np.float32) if intensity is None
               else np.asarray(intensity, dtype=np.float32).reshape(-1))
-        stats = {"n_measured": int(np.count_nonzero(np.isfinite(Zf)))}
-        return self._elas_only(Zf, Vf, If, stats, max_sigma)
+        return (np.asarray(Z, dtype=np.float32).ravel(), np.asarray(var, dtype=np.float32).ravel(),
+                If)
 
     def _elas_only(self, Zf, Vf, If, stats, max_sigma: float = float("inf")) -> DepthOutput:
         """The ELAS-only baseline: every valid pixel of this frame (on the stride grid) whose

@@ -245,10 +245,7 @@ class DepthNode:
                 frame, self.lost_cloud_frame = (None, self.lost_cloud_frame) if lost else \
                     (self.lost_cloud_frame, None)
             if frame is not None:   # tracking resumed: the obstacle layers drop the last raw cloud
-                self.pub_raw.publish(arrays_to_pointcloud2(
-                    {"intensity": np.zeros(0, np.float32), "variance": np.zeros(0, np.float32),
-                     "n_obs": np.zeros(0, np.uint32)}, stamp=msg.header.stamp, frame_id=frame,
-                    xyz=np.zeros((0, 3), np.float32)))
+                self.pub_raw.publish(_cloud_msg(None, msg.header.stamp, frame))
 
     def on_pose(self, msg):
         try:
@@ -424,9 +421,7 @@ class DepthNode:
         """A pair matched while the tracker is LOST: its own points, on ``mdr/depth/raw_points``."""
         out = self.depth.single_frame(meas, LOST_CLOUD_MAX_SIGMA)
         frame_id = header.frame_id or frame
-        msg = arrays_to_pointcloud2({"intensity": out.intensity, "variance": out.variance,
-                                     "n_obs": out.n_obs.astype(np.uint32)},
-                                    stamp=header.stamp, frame_id=frame_id, xyz=out.points)
+        msg = _cloud_msg(out, header.stamp, frame_id)
         with self.raw_lock:   # checked and sent before on_state can send the empty cloud
             with self.cv:
                 if self.lost_at is None:   # tracking resumed while this pair was matched: stale
@@ -467,10 +462,7 @@ class DepthNode:
                 return
         self.counts["processed"] += 1
         frame_id = header.frame_id or frame
-        msg = arrays_to_pointcloud2({"intensity": out.intensity, "variance": out.variance,
-                                     "n_obs": out.n_obs.astype(np.uint32)},
-                                    stamp=stamp, frame_id=frame_id, xyz=out.points)
-        self.pub_points.publish(msg)
+        self.pub_points.publish(_cloud_msg(out, stamp, frame_id))
         self.counts["published"] += 1
         if self.pub_image is not None:
             img = render_depth(out.points, depth.camera)
@@ -503,6 +495,19 @@ class DepthNode:
         stat.add("drops", str(c["dropped"] + c["skipped"]))   # pairs received but not published
         self.health.add_to(stat)
         return stat
+
+
+def _cloud_msg(out, stamp, frame_id: str) -> PointCloud2:
+    """A DepthOutput's points (x y z intensity variance n_obs) as a PointCloud2; None: an empty
+    cloud with the same fields."""
+    if out is None:
+        return arrays_to_pointcloud2({"intensity": np.zeros(0, np.float32),
+                                      "variance": np.zeros(0, np.float32),
+                                      "n_obs": np.zeros(0, np.uint32)}, stamp=stamp,
+                                     frame_id=frame_id, xyz=np.zeros((0, 3), np.float32))
+    return arrays_to_pointcloud2({"intensity": out.intensity, "variance": out.variance,
+                                  "n_obs": out.n_obs.astype(np.uint32)},
+                                 stamp=stamp, frame_id=frame_id, xyz=out.points)
 
 
 def main():
