@@ -1,7 +1,8 @@
 """The published grid's extent (mdr_slam.fusion.GridExtent, nav.map_products): it grows in whole
 lattice steps, never shrinks, holds the camera with a margin and keeps the content cell for cell,
 so that move_base's global costmap, which the static layer resizes to every new extent, is rarely
-resized and always holds the robot."""
+resized and always holds the robot; and the cells under the robot's base are free
+(free_footprint)."""
 from __future__ import annotations
 
 import numpy as np
@@ -58,6 +59,19 @@ def test_extent_grows_in_steps_and_keeps_the_content():
     assert (out.shape, o) == boxes[-1]
 
 
+def _corridor_map():
+    """The corridor as a fusion map snapshot (every point confident), map_products' parameters
+    and the camera."""
+    pts, cam = _corridor(4.0)
+    n = len(pts)
+    cloud = {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2], "intensity": np.zeros(n),
+             "confidence": np.full(n, 5.0)}
+    p = {"publish_grid": True, "grid_resolution": RES, "grid_z_min": 0.1, "grid_z_max": 1.5,
+         "grid_up_axis": "z", "grid_free_band": 0.3, "display_voxel": 0.0,
+         "display_min_confidence": 3, "grid_min_confidence": 3}
+    return cloud, p, cam
+
+
 def test_no_step_is_the_bounding_box():
     pts, cam = _corridor(4.0)
     g, origin, _ = occupancy_grid(pts, RES, 0.1, 1.5)
@@ -67,15 +81,45 @@ def test_no_step_is_the_bounding_box():
 
 def test_map_products_pads_the_grid_around_the_camera():
     from mdr_slam.nav import map_products
-    pts, cam = _corridor(4.0)
-    n = len(pts)
-    cloud = {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2], "intensity": np.zeros(n),
-             "confidence": np.full(n, 5.0)}
-    p = {"publish_grid": True, "grid_resolution": RES, "grid_z_min": 0.1, "grid_z_max": 1.5,
-         "grid_up_axis": "z", "grid_free_band": 0.3, "display_voxel": 0.0,
-         "display_min_confidence": 3, "grid_min_confidence": 3}
+    cloud, p, cam = _corridor_map()
     _, (g, origin, res) = map_products(cloud, p)
     far = np.array([[12.0, 0.0, 0.8]])                # the camera drove on without seeing more
     _, (gp, op, _) = map_products(cloud, p, GridExtent(RES, 5.0, 2.0), far)
     assert res == RES and op == (0.0, -5.0) and gp.shape == (200, 300)    # x 0..15, y -5..5
     assert (gp == 100).sum() == (g == 100).sum() and (gp == 0).sum() == (g == 0).sum()
+
+
+def test_free_footprint_frees_the_disc_around_the_base_only():
+    from mdr_slam.fusion import free_footprint
+    g = np.full((40, 60), 100, np.int8)
+    g[:5] = -1                                        # unknown rows: free under the base too
+    origin = (-1.0, -0.5)
+    base = np.array([[0.0, 0.0]])
+    freed = free_footprint(g, origin, RES, base, 0.3)
+    ys, xs = np.mgrid[0:40, 0:60]
+    d = np.hypot(origin[0] + (xs + 0.5) * RES, origin[1] + (ys + 0.5) * RES)
+    assert (g[d <= 0.3] == 0).all()
+    assert (g[(d > 0.3) & (ys >= 5)] == 100).all() and (g[(d > 0.3) & (ys < 5)] == -1).all()
+    assert freed == int(((d <= 0.3) & (ys >= 5)).sum())
+    # a base off the grid, NaN, or radius 0 leaves it alone
+    h = g.copy()
+    assert free_footprint(h, origin, RES, [[20.0, 20.0], [np.nan, 0.0]], 0.3) == 0
+    assert free_footprint(h, origin, RES, base, 0.0) == 0 and (h == g).all()
+
+
+def test_map_products_frees_the_base_footprint_after_padding():
+    """A wall under the base (mapped at a wrong pose) is cut where the base stands, in the padded
+    grid move_base gets, and nowhere else; without a base (no tf) the grid is unchanged."""
+    from mdr_slam.nav import map_products
+    cloud, p, cam = _corridor_map()
+    p["grid_footprint_radius"] = 0.3
+    base = np.array([[2.0, 1.0, 0.0]])                # on the wall at y = 1
+    _, (g0, o0, _) = map_products(cloud, p, GridExtent(RES, 5.0, 2.0), cam[None])
+    _, (g1, o1, _) = map_products(cloud, p, GridExtent(RES, 5.0, 2.0), cam[None], base)
+    assert o0 == o1 and g0.shape == g1.shape
+    c = np.floor((base[0, :2] - np.array(o1)) / RES).astype(int)
+    assert g0[c[1], c[0]] == 100 and g1[c[1], c[0]] == 0
+    changed = np.argwhere(g0 != g1)
+    assert len(changed) and (np.hypot(*((changed[:, ::-1] + 0.5) * RES + o1 - base[0, :2]).T)
+                             <= 0.3 + 1e-9).all()
+    assert ((g0 != g1) <= (g0 == 100) | (g0 == -1)).all()

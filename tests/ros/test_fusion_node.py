@@ -292,3 +292,47 @@ def test_the_planners_goal_is_kept_inside_the_grid(rospy_client, start_process, 
     assert wait_for(lambda: x_range(grids[-1])[1] >= 22.0 - 1e-6, 15), (before, x_range(grids[-1]))
     assert x_range(grids[-1])[0] == before[0]
     assert node.proc.poll() is None
+
+
+def test_the_grid_is_free_under_the_base_and_follows_it(rospy_client, start_process, tmp_path):
+    """The grid's cells within grid_footprint_radius of the base (tf map <- base_frame) are free,
+    and when the base moves with no new cloud (tracking LOST) the grid is republished with the
+    freed disc at its new place and the old place occupied again."""
+    rospy = rospy_client
+    import tf2_ros
+    from nav_msgs.msg import OccupancyGrid
+    from sensor_msgs.msg import PointCloud2
+    name = "fusion_base"
+    node = _node(start_process, tmp_path, name, ["_base_frame:=fp_base",
+                                                   "_grid_footprint_radius:=0.3"])
+    grids = []
+    rospy.Subscriber("/%s/grid" % name, OccupancyGrid, grids.append)
+    pub = rospy.Publisher("/%s/cloud" % name, PointCloud2, queue_size=10)
+    static = tf2_ros.StaticTransformBroadcaster()
+
+    def put_base(x):
+        static.sendTransform(cv.matrix_to_transform_stamped(make_T(np.eye(3), [x, Y, 0.0]),
+                                                            rospy.Time(0), "map", "fp_base"))
+    # a wall along map x in the middle of the cells of y 1.0-1.05 (the cloud is in map: the
+    # camera at its origin)
+    Y = 1.025
+    xs, zs = np.meshgrid(np.arange(0.0, 3.0, 0.02), np.arange(0.2, 0.8, 0.05))
+    wall = np.column_stack([xs.ravel(), np.full(xs.size, Y), zs.ravel()]).astype(np.float32)
+    put_base(1.0)
+    assert wait_for(lambda: pub.get_num_connections() > 0, 30), node.output()
+    pub.publish(cv.arrays_to_pointcloud2({}, rospy.Time.now(), "map", xyz=wall))
+
+    def cell(g, x, y):
+        data = np.array(g.data, np.int8).reshape(g.info.height, g.info.width)
+        c = int(np.floor((x - g.info.origin.position.x) / g.info.resolution))
+        r = int(np.floor((y - g.info.origin.position.y) / g.info.resolution))
+        return int(data[r, c])
+
+    def at(x_free, x_occupied):
+        return grids and cell(grids[-1], x_free, Y) == 0 and cell(grids[-1], x_occupied, Y) == 100
+    assert wait_for(lambda: at(1.0, 2.0), 15), node.output()
+    assert cell(grids[-1], 1.0 + 0.25, Y) == 0 and cell(grids[-1], 1.0 + 0.4, Y) == 100
+    n = len(grids)
+    put_base(2.0)                                    # no cloud since: only the base moved
+    assert wait_for(lambda: len(grids) > n and at(2.0, 1.0), 15), node.output()
+    assert node.proc.poll() is None

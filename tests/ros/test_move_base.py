@@ -809,6 +809,74 @@ def test_local_costmap_marks_the_lost_cloud_until_the_stretch_ends(rospy_client,
     assert cleared
 
 
+def test_a_wall_mapped_under_the_base_leaves_it_a_plan(rospy_client, start_process, tmp_path):
+    """A partition the fusion node mapped while the localization was off, 0.3 m thick, runs right
+    under the base. move_base's recoveries never clear the static map, so with every cell around the base
+    lethal or inscribed no plan would ever start ("Failed to get a plan"). The node frees the
+    grid's cells within grid_footprint_radius of base_link (the default configuration): the
+    base gets a plan out, and reaches the goal."""
+    from actionlib_msgs.msg import GoalStatus
+    from nav_msgs.msg import OccupancyGrid
+    from sensor_msgs.msg import PointCloud2
+    from mdr_slam.conversions import arrays_to_pointcloud2
+    rospy = rospy_client
+    fusion = yaml.safe_load(open(os.path.join(CONFIG, "fusion.yaml")))
+    assert fusion["grid_footprint_radius"] > _nav_yaml("costmap_common_params.yaml")["robot_radius"]
+    # the map's cloud on a topic of its own: move_base's costmaps read /mdr/depth/points as what
+    # the camera sees now, and the camera does not see the misplaced partition
+    fusion.update(map_path=str(tmp_path / "map"), autosave=False, resume=False,
+                  tracking_state_topic="", pose_node="", goal_topic="",
+                  cloud_topic="/mdr/test/map_cloud")
+    (tmp_path / "fusion.yaml").write_text(yaml.safe_dump(fusion))
+    # the misplaced partition: 0.3 m thick (a wall fused at several wrong poses), in mid-cells
+    walls = [(0, 0, 6, 0), (6, 0, 6, 4), (6, 4, 0, 4), (0, 4, 0, 0)] + \
+        [(1, y, 4, y) for y in np.arange(1.875, 2.18, 0.05)]
+    cols = Room(walls).cols
+    zs = np.arange(0.3, 1.01, 0.1)
+    pts = np.column_stack([np.repeat(cols, len(zs), 0), np.tile(zs, len(cols))])
+    start, target = (2.5, 2.025), (5.0, 1.0)
+    pub = rospy.Publisher("/mdr/test/map_cloud", PointCloud2, queue_size=5)
+    grids = Recorder(rospy, "/mdr/map/grid", OccupancyGrid)
+    robot = FakeRobot(rospy, (start[0], start[1], 0.0))   # no camera: the map is the cloud below
+    launch = start_move_base(start_process, fusion_params=str(tmp_path / "fusion.yaml"))
+
+    def cell(m, x, y):
+        g, o, res = msg_grid(m)
+        r, c, inside = cells_of(np.array([[x, y]]), o, res, g.shape)
+        return int(g[r[0], c[0]]) if inside[0] else None
+
+    def partition_mapped():
+        m = grids.msgs[-1][1] if grids.msgs else None
+        return m is not None and cell(m, 1.5, start[1]) == 100 and m
+    try:
+        client = goal_client(rospy)
+        assert wait_for(lambda: pub.get_num_connections() > 0, 30), "no fusion node"
+        for _ in range(4):       # a cloud in map (camera at the map's origin), seen 4 times
+            pub.publish(arrays_to_pointcloud2({}, rospy.Time.now(), "map", xyz=pts))
+            time.sleep(0.5)
+        m = wait_for(partition_mapped, 30, 0.2)
+        assert m, launch.output()[-3000:]
+        under, beside = cell(m, *start), cell(m, start[0] + 0.5, start[1])
+        # (not ~make_plan: it clears a window around the robot in the global costmap, which
+        # lasts until the static layer's next grid)
+        client.send_goal(goal(*target))
+        client.wait_for_result(rospy.Duration(120))
+        state = client.get_state()
+        end = robot.xy_yaw()
+    finally:
+        grids.stop()
+        robot.stop()
+        pub.unregister()
+        launch.stop()
+    failed = len(log_lines(launch, "Failed to get a plan"))
+    print("grid under the base %s, 0.5 m along the partition %s; goal %s, robot at (%.2f, %.2f); "
+          "%d times 'Failed to get a plan'" % (under, beside, state_name(state), end[0], end[1],
+                                               failed))
+    assert under == 0 and beside == 100
+    assert state == GoalStatus.SUCCEEDED
+    assert math.hypot(end[0] - target[0], end[1] - target[1]) < 0.3
+
+
 # ---------------------------------------------------------------------- closed loop, fusion grid
 # a 10 x 7 m room split by a wall with a 2.5 m opening at its far end; the robot starts facing
 # the wall and is sent behind it

@@ -28,7 +28,7 @@ from scipy.ndimage import distance_transform_edt
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from .fusion import grid_axes, occupancy_grid, voxel_downsample
+from .fusion import free_footprint, grid_axes, occupancy_grid, voxel_downsample
 
 __all__ = ["Plan", "world_to_cell", "cell_to_world", "grid_from_msg", "traversable", "plan_path",
            "map_min_confidence", "map_views", "map_products"]
@@ -228,7 +228,7 @@ def map_views(cloud) -> Optional[np.ndarray]:
     return np.stack([cloud["view_x"], cloud["view_y"], cloud["view_z"]], 1).astype(np.float64)
 
 
-def map_products(cloud: dict, params: dict, extent=None, around=None):
+def map_products(cloud: dict, params: dict, extent=None, around=None, base=None):
     """What the fusion node publishes from one snapshot ``cloud`` of its map
     (:meth:`mdr_slam.fusion.VoxelMap.to_cloud` at ``min(map_min_confidence(params))`` or lower:
     fields ``x y z intensity confidence``).
@@ -243,6 +243,8 @@ def map_products(cloud: dict, params: dict, extent=None, around=None):
     ``grid_max_gap`` closed (missing keys: off). Both are in the map frame. ``extent``, a
     :class:`mdr_slam.fusion.GridExtent`, pads the grid to its extent, kept around the ``map``
     positions ``around`` ((N, 3), the camera), so that move_base's costmap is rarely resized.
+    ``base`` ((N, 3) ``map`` positions of the robot's base): the grid's cells within
+    ``grid_footprint_radius`` of it are free (:func:`mdr_slam.fusion.free_footprint`).
 
     move_base's obstacle layer marks ``/mdr/map/points`` between its min/max obstacle heights
     (config/navigation: ``grid_z_min``/``grid_z_max``) and never clears them (the cloud is in
@@ -270,6 +272,10 @@ def map_products(cloud: dict, params: dict, extent=None, around=None):
                       @ grid_axes(p["grid_up_axis"]).T)[:, :2]
             data, origin = extent.apply(grid[0], grid[1], xy)
             grid = (data, origin, grid[2])
+        r = float(p.get("grid_footprint_radius", 0.0))
+        if base is not None and r > 0:
+            xy = (np.asarray(base, np.float64).reshape(-1, 3) @ grid_axes(p["grid_up_axis"]).T)
+            free_footprint(grid[0], grid[1], grid[2], xy[:, :2], r)
     keep = conf_all >= mc_disp
     xyz = xyz[keep]
     inten = np.asarray(cloud["intensity"])[keep]

@@ -10,13 +10,13 @@ import os
 import sys
 
 from .config import VoxelMapConfig
-from .grid import GridExtent, grid_axes, grid_origin_T, occupancy_grid
+from .grid import GridExtent, free_footprint, grid_axes, grid_origin_T, occupancy_grid
 from .voxel_map import IntegrationStats, VoxelMap, normal_bins, voxel_downsample
 from .mesh import (auto_views, mesh_from_map, render_depth, tsdf_mesh, views_from_trajectory,
                    write_mesh)
 
 __all__ = ["limit_openmp_threads", "VoxelMap", "VoxelMapConfig", "IntegrationStats", "normal_bins",
-           "voxel_downsample", "GridExtent", "grid_axes", "grid_origin_T", "occupancy_grid",
+           "voxel_downsample", "GridExtent", "free_footprint", "grid_axes", "grid_origin_T", "occupancy_grid",
            "render_depth", "auto_views", "views_from_trajectory", "tsdf_mesh", "mesh_from_map",
            "write_mesh"]
 

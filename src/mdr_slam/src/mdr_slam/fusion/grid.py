@@ -7,7 +7,8 @@ from typing import Optional
 
 import numpy as np
 
-__all__ = ["grid_axes", "grid_origin_T", "occupancy_grid", "close_wall_gaps", "GridExtent"]
+__all__ = ["grid_axes", "grid_origin_T", "occupancy_grid", "close_wall_gaps", "free_footprint",
+           "GridExtent"]
 
 _AXES = {"x": np.array([1.0, 0, 0]), "y": np.array([0, 1.0, 0]), "z": np.array([0, 0, 1.0])}
 
@@ -314,6 +315,41 @@ def close_wall_gaps(grid: np.ndarray, resolution: float, max_gap: float) -> int:
     cells = np.unique(y[fill] * W + x[fill])
     grid[cells // W, cells % W] = 100
     return int(len(cells))
+
+
+def free_footprint(grid: np.ndarray, origin, resolution: float, centres, radius: float) -> int:
+    """Mark free (0), in place, every cell of ``grid`` whose centre lies within ``radius`` m of
+    one of the grid-plane positions ``centres`` ((N, 2) m; the robot's base): the robot stands
+    there, so nothing else does. Returns the number of occupied cells freed.
+
+    RTAB-Map drops the points inside the robot's footprint from its obstacle cloud (Grid/Footprint*)
+    for the same reason. Here it guards against a wall fused at a wrong pose that now lies under
+    the base: move_base's recoveries clear only obstacle layers, never the static map, so with
+    every cell around the base lethal or inscribed no plan can start. A ``radius`` above the
+    costmap's inscribed radius leaves the base's own cell below the inscribed cost."""
+    r = float(radius)
+    C = np.asarray(centres, np.float64).reshape(-1, 2)
+    C = C[np.isfinite(C).all(axis=1)]
+    if not r > 0 or not len(C) or grid.size == 0:
+        return 0
+    res = float(resolution)
+    H, W = grid.shape
+    k = int(np.ceil(r / res)) + 1
+    freed = 0
+    for c in C:
+        # cell indices of the centre, then a (2k+1)^2 window around it clipped to the grid
+        col, row = np.floor((c - np.asarray(origin, np.float64)) / res).astype(np.int64)
+        r0, r1 = max(row - k, 0), min(row + k + 1, H)
+        c0, c1 = max(col - k, 0), min(col + k + 1, W)
+        if r0 >= r1 or c0 >= c1:
+            continue
+        ys = origin[1] + (np.arange(r0, r1) + 0.5) * res - c[1]
+        xs = origin[0] + (np.arange(c0, c1) + 0.5) * res - c[0]
+        inside = ys[:, None] ** 2 + xs[None, :] ** 2 <= r * r
+        win = grid[r0:r1, c0:c1]
+        freed += int(np.count_nonzero(win[inside] == 100))
+        win[inside] = 0
+    return freed
 
 
 class GridExtent:

@@ -116,6 +116,9 @@ class FusionNodeConfig(Config):
     grid_margin: float = 2.0        # m kept around the camera inside the grid (move_base's robot and
                                     # depth sensor must lie in the global costmap)
     goal_topic: str = "move_base/current_goal"   # PoseStamped goals kept inside the grid too; "": none
+    base_frame: str = "base_link"   # tf frame of the robot's base (move_base's robot_base_frame) ...
+    grid_footprint_radius: float = 0.3  # m: ... grid cells within this of it are free (the robot
+                                    # stands there); above the costmap's inscribed radius; 0: off
     # files (writes are atomic: temporary file + rename)
     map_dir: str = ""               # the services' paths resolve inside it; "": $ROS_HOME/mdr_maps
     map_path: str = "last"          # map folder (in map_dir; or a .ply/.pcd file) of autosave and ~save_map

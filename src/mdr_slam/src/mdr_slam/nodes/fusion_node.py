@@ -110,6 +110,7 @@ class FusionNode:
         self.views = []                      # camera poses for mesh export (subsampled)
         self.camera = None                   # the latest integrated cloud's camera centre in map
         self.goal = None                     # the planner's current goal in map (goal_topic)
+        self.base = None                     # the base's position in map freed in the last grid
         self.grid_extent = GridExtent(cfg.grid_resolution, cfg.grid_extent_step, cfg.grid_margin)
         self.n_integrated = 0
         self.n_received = 0                  # clouds that reached integrate() (the rest: queue drops)
@@ -410,9 +411,28 @@ class FusionNode:
                           n, msg.reason)
 
     # ------------------------------------------------------------------ output
+    def _base_position(self):
+        """The robot base's position in ``map`` now (tf), or None (no footprint to free)."""
+        if not (self.cfg.publish_grid and self.cfg.grid_footprint_radius > 0 and self.cfg.base_frame):
+            return None
+        try:
+            T = transform_stamped_to_matrix(self.tf_buffer.lookup_transform(
+                self.cfg.map_frame, self.cfg.base_frame, rospy.Time(0)))
+        except (ConversionError, tf2_ros.TransformException) as e:
+            self.warn("base", "no pose of the base (%s <- %s): its footprint is not freed in the "
+                      "grid: %s" % (self.cfg.map_frame, self.cfg.base_frame, e), "debug")
+            return None
+        return T[:3, 3].copy()
+
     def on_publish(self, _event=None):
-        if not self.dirty or self.closed:
+        if self.closed:
             return
+        if not self.dirty:
+            # the map is unchanged (no clouds while LOST), but the freed footprint follows the base
+            base = self._base_position()
+            if base is None or (self.base is not None and
+                                np.linalg.norm(base - self.base) < 2 * self.cfg.grid_resolution):
+                return
         self.dirty = False
         try:
             self.publish()
@@ -424,10 +444,12 @@ class FusionNode:
         with self.lock:  # only the copy holds the lock; integration goes on meanwhile
             c = self.map.to_cloud(min(map_min_confidence(self.products_params)))
         stamp = rospy.Time.now()
-        around = [p for p in (self.camera, self.goal) if p is not None]
+        base = self._base_position()
+        self.base = base
+        around = [p for p in (self.camera, self.goal, base) if p is not None]
         around = np.array(around) if around else None
         pts, grid = map_products(c, self.products_params,   # cloud and grid of one snapshot
-                                 self.grid_extent, around)
+                                 self.grid_extent, around, base)
         self.pub_points.publish(arrays_to_pointcloud2(
             {"intensity": np.asarray(pts["intensity"], np.float32),
              "confidence": np.asarray(pts["confidence"], np.float32)},
