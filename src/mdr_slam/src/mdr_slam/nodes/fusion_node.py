@@ -10,7 +10,8 @@ A thin shell around :class:`mdr_slam.fusion.VoxelMap` (paper section 3.4):
   pose node publishes corrected keyframe poses (local BA, loop closure) the map points follow.
 * ``/mdr/map/points`` (latched, ``~publish_rate`` Hz, voxel-downsampled for display: x, y, z,
   intensity, confidence) and ``/mdr/map/grid`` (nav_msgs/OccupancyGrid, latched) for move_base;
-  ``/mdr/map/nav_grid`` is the same grid with its unknown cells free (move_base's static layer).
+  ``/mdr/map/nav_grid`` is the same grid with its unknown cells at ``~nav_grid_unknown`` (move_base's
+  static layer: unmapped space may be crossed, at a cost).
   The grid's extent grows in steps of ``~grid_extent_step`` m and holds the camera with a
   ``~grid_margin``, so move_base's global costmap is rarely resized and holds the robot.
 * map folders (mdr_slam.io.map_dir): services ``~save_map``, ``~load_map`` (a folder name inside
@@ -466,7 +467,8 @@ class FusionNode:
             msg.data = data.reshape(-1).tolist()
             self.pub_grid.publish(msg)
             if self.pub_nav_grid is not None:
-                msg.data = np.maximum(data, 0).reshape(-1).tolist()
+                unknown = int(np.clip(cfg.nav_grid_unknown, 0, 99))
+                msg.data = np.where(data < 0, np.int8(unknown), data).reshape(-1).tolist()
                 self.pub_nav_grid.publish(msg)
 
     def diagnostics(self, stat):
