@@ -340,3 +340,35 @@ def test_lost_frames_carry_the_pose_on_by_the_wheel_odometry():
         truth = T_BASE_CAM_LEVEL @ inv_T(poses[0]) @ T_wc
         assert np.linalg.norm(r.T_map_cam_coasted[:3, 3] - truth[:3, 3]) < 0.02
     assert all(r.T_map_cam_coasted is None for r in res[:22])
+
+
+def test_a_map_reset_starts_where_the_wheel_odometry_carried_the_base():
+    """A young map LOST (blank images) is thrown away and a new one started (ORB-SLAM2 Reset).
+    With wheel odometry the new map's first camera is put where the odometry carried the base,
+    so map stays put: the poses after the reset are where the base truly is, not back at the
+    start pose turned by what the base turned meanwhile."""
+    room = BoxRoom((3.0, 1.5, 3.0), tex_size=768, seed=3)
+    poses = orbit_trajectory(28, radius=1.0, arc=np.pi / 2)
+    s = System(CAM, config={"planar_motion": "auto"}, threads=False, T_map_cam0=T_BASE_CAM_LEVEL)
+    res = []
+    for i, T_wc in enumerate(poses[:14]):
+        l, r = room.render_stereo(T_wc, CAM)
+        if 2 <= i < 8:
+            l, r = np.full_like(l, 128), np.full_like(r, 128)
+        f = s.make_frame(0.05 * i, l, r)
+        T = inv_T(poses[0]) @ T_wc
+        T[:3, 3] *= 1.02
+        f.T_odom_cam = T_BASE_CAM_LEVEL @ T
+        res.append(s.track(f.stamp, frame=f))
+    s.shutdown()
+    assert s.n_keyframes_created > len(s.map.keyframes), "no reset"     # a map was thrown away
+    after = [(r, T_wc) for r, T_wc in zip(res[8:], poses[8:]) if r.T_map_cam is not None]
+    assert len(after) >= 4, [r.state for r in res]
+    moved = inv_T(poses[0]) @ poses[8]
+    turned = np.degrees(Rotation.from_matrix(moved[:3, :3]).magnitude())
+    assert np.linalg.norm(moved[:3, 3]) > 0.2 and turned > 10     # a reset at the start is wrong
+    for r, T_wc in after:
+        truth = T_BASE_CAM_LEVEL @ inv_T(poses[0]) @ T_wc
+        err_deg = np.degrees(Rotation.from_matrix(truth[:3, :3].T @ r.T_map_cam[:3, :3]).magnitude())
+        assert np.linalg.norm(r.T_map_cam[:3, 3] - truth[:3, 3]) < 0.03 and err_deg < 1.0, \
+            (r.stamp, r.T_map_cam[:3, 3], truth[:3, 3], err_deg)

@@ -82,6 +82,7 @@ class System:
                                             self.cfg.fast_threshold,
                                             min_fast_threshold=self.cfg.min_fast_threshold)
         self.request_reset = False
+        self.reset_pending_anchor = False   # a reset map waits for its first keyframe's place
         self.correction_id = 0
         # the robot's odometry errors: kept across map resets (they are the wheels', not the map's)
         self.odometry_calibration = OdometryCalibration()
@@ -204,6 +205,15 @@ class System:
         c0 = time.thread_time()
         if self.request_reset:
             self.reset()
+        T_odom_base = None
+        if ODOMETRY_CALIBRATION and self.T_base_cam is not None and \
+                getattr(frame, "T_odom_cam", None) is not None:
+            # the tracker keeps the raw odometry (its gates allow for the raw errors); the
+            # corrected chain carries the pose while it is lost
+            T_odom_base = frame.T_odom_cam @ inv_T(self.T_base_cam)
+            self.odometry_calibration.correct(stamp, T_odom_base)
+        if self.reset_pending_anchor and not self.map.keyframes:
+            self._anchor_new_map()
         if self.map.planar is None and (not self.map.keyframes or self.planar_recheck):
             # decided with a map's first frame (or the first after loading one)
             self.planar_recheck = False
@@ -213,14 +223,9 @@ class System:
                 for kf in self.map.keyframes.values():
                     kf.planar = planar
         t_frame = frame.build_ms
-        T_odom_base = None
-        if ODOMETRY_CALIBRATION and self.T_base_cam is not None and \
-                getattr(frame, "T_odom_cam", None) is not None:
-            # the tracker keeps the raw odometry (its gates allow for the raw errors); the
-            # corrected chain carries the pose while it is lost
-            T_odom_base = frame.T_odom_cam @ inv_T(self.T_base_cam)
-            self.odometry_calibration.correct(stamp, T_odom_base)
         out = self.tracking.track(frame)
+        if self.map.keyframes:
+            self.reset_pending_anchor = False
         if out["is_keyframe"] and self.loop_closing is not None:   # proximity loop path
             self.loop_closing.keep_image(out["keyframe_id"], frame.image)
         state = self.tracking.state
@@ -370,12 +375,26 @@ class System:
 
     def reset(self) -> None:
         """Start a new map (ORB-SLAM2 Reset after losing track right after initialisation).
-        Frames of the discarded map are dropped from the trajectory."""
+        Frames of the discarded map are dropped from the trajectory. With wheel odometry the new
+        map starts where the odometry carried the base (:meth:`_anchor_new_map`)."""
         self.request_reset = False
+        self.reset_pending_anchor = True
         self.map_loaded = False
         self._created_before_reset += self.tracking.n_keyframes_created
         self._stop_threads()
         self._build()
+
+    def _anchor_new_map(self) -> None:
+        """Put the new map's first camera (tracking's world origin) where the corrected wheel
+        odometry carried the base since the last tracked frame, so that ``map`` stays where it
+        was. ORB-SLAM2 starts a reset map at its new first frame; reported in the old ``map``
+        that would put the robot back at its start pose, turned by whatever it turned meanwhile
+        (a reset during a turn on the spot rotated every later pose about that spot)."""
+        T = self.odometry_calibration.coasted()
+        if T is None:
+            return
+        self.T_map_world = T @ self.T_base_cam
+        self.map.planar = None       # decided again on the new floor frame
 
     def _stop_threads(self) -> None:
         if self.threads:
