@@ -343,13 +343,14 @@ def log_lines(launch, *needles):
 
 class GridPublisher:
     """Publishes a grid as the fusion node does: /mdr/map/grid, and /mdr/map/nav_grid with the
-    unknown cells at fusion.yaml's nav_grid_unknown."""
+    unknown cells at fusion.yaml's nav_grid_unknown (or ``unknown``)."""
 
-    def __init__(self, rospy):
+    def __init__(self, rospy, unknown=None):
         from nav_msgs.msg import OccupancyGrid
         self.pubs = [rospy.Publisher(t, OccupancyGrid, queue_size=1, latch=True)
                      for t in ("/mdr/map/grid", "/mdr/map/nav_grid")]
-        self.unknown = yaml.safe_load(open(os.path.join(CONFIG, "fusion.yaml")))["nav_grid_unknown"]
+        self.unknown = unknown if unknown is not None else \
+            yaml.safe_load(open(os.path.join(CONFIG, "fusion.yaml")))["nav_grid_unknown"]
 
     def publish(self, g, origin):
         self.pubs[0].publish(grid_msg(g, origin))
@@ -811,13 +812,15 @@ def test_local_costmap_marks_the_lost_cloud_until_the_stretch_ends(rospy_client,
 
 
 def test_plans_keep_to_mapped_floor_rather_than_cut_through_unmapped_space(
-        rospy_client, start_process, grid_publisher):
+        rospy_client, start_process):
     """An L of mapped floor (a corridor the robot drove) round a block the map has nothing of: the
-    cameras got no depth from its wall (blank), so the grid leaves it unknown. The plan from the
-    L's top to its far end takes the L (1.3 times the straight line) instead of the straight line
-    through the unmapped block, into the blank wall; a goal inside unmapped space is still
-    planned."""
+    cameras got no depth from its wall (blank), so the grid leaves it unknown. With the unknown
+    cells of /mdr/map/nav_grid at ``nav_grid_unknown`` 10 (the static layer scales them: not
+    trinary) the plan from the L's top to its far end takes the L (1.3 times the straight line)
+    instead of the straight line through the unmapped block, into the blank wall; a goal inside
+    unmapped space is still planned."""
     rospy = rospy_client
+    grid_publisher = GridPublisher(rospy, unknown=10)
     g, origin = wall_grid([(0, 0, 10, 0), (10, 0, 10, 6)], (-0.5, -0.5), (10.5, 6.5), fill=-1)
     xx = origin[0] + (np.arange(g.shape[1]) + 0.5) * RES
     yy = origin[1] + (np.arange(g.shape[0]) + 0.5) * RES
@@ -841,6 +844,7 @@ def test_plans_keep_to_mapped_floor_rather_than_cut_through_unmapped_space(
     finally:
         robot.stop()
         launch.stop()
+        grid_publisher.stop()
     assert xy is not None and len(xy), "no plan"
     r, c, inside = cells_of(xy, origin, RES, g.shape)
     unknown = int((g[r[inside], c[inside]] < 0).sum())

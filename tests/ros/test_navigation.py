@@ -113,9 +113,9 @@ def test_costmap_parameters_match_the_fusion_grid():
     # relative: follows a namespace; the grid with unknown cells free, which the fusion node
     # publishes by default
     assert common["static_layer"]["map_topic"] == "mdr/map/nav_grid" and fusion["publish_nav_grid"]
-    # its unknown cells a cost, not free and not lethal: the static layer scales the value
+    # its unknown cells free or at a cost, never lethal: the static layer scales the value
     sl = common["static_layer"]
-    assert not sl["trinary_costmap"] and 0 < fusion["nav_grid_unknown"] < sl["lethal_cost_threshold"]
+    assert not sl["trinary_costmap"] and 0 <= fusion["nav_grid_unknown"] < sl["lethal_cost_threshold"]
     assert glob["global_frame"] == fusion["map_frame"] and glob["robot_base_frame"] == "base_link"
     assert glob["resolution"] == fusion["grid_resolution"]
     assert local["global_frame"] == "odom" and local["rolling_window"]
