@@ -315,17 +315,16 @@ def test_a_tracked_step_the_wheel_odometry_contradicts_is_refused():
     assert t.n_odom_step_refused == n
 
 
-def test_lost_frames_carry_the_pose_on_by_the_wheel_odometry():
-    """Tracked, then blank images (LOST) while the wheels go on: the result has no tracked pose
-    but the last tracked one carried on by the odometry (T_map_cam_coasted), where the base truly
-    is to within the odometry's 2 % error."""
+def _track_with_odometry(poses, blank):
+    """Track the orbit ``poses`` in the textured room with planar_motion auto and wheel odometry
+    (translations read 2 % long), the images of frames ``i`` with ``blank(i)`` blank; returns the
+    (shut down) System and its results."""
     room = BoxRoom((3.0, 1.5, 3.0), tex_size=768, seed=3)
-    poses = orbit_trajectory(28, radius=1.0, arc=np.pi / 2)
     s = System(CAM, config={"planar_motion": "auto"}, threads=False, T_map_cam0=T_BASE_CAM_LEVEL)
     res = []
     for i, T_wc in enumerate(poses):
         l, r = room.render_stereo(T_wc, CAM)
-        if i >= 22:
+        if blank(i):
             l, r = np.full_like(l, 128), np.full_like(r, 128)
         f = s.make_frame(0.05 * i, l, r)
         T = inv_T(poses[0]) @ T_wc
@@ -333,6 +332,15 @@ def test_lost_frames_carry_the_pose_on_by_the_wheel_odometry():
         f.T_odom_cam = T_BASE_CAM_LEVEL @ T
         res.append(s.track(f.stamp, frame=f))
     s.shutdown()
+    return s, res
+
+
+def test_lost_frames_carry_the_pose_on_by_the_wheel_odometry():
+    """Tracked, then blank images (LOST) while the wheels go on: the result has no tracked pose
+    but the last tracked one carried on by the odometry (T_map_cam_coasted), where the base truly
+    is to within the odometry's 2 % error."""
+    poses = orbit_trajectory(28, radius=1.0, arc=np.pi / 2)
+    _, res = _track_with_odometry(poses, lambda i: i >= 22)
     assert [r.state for r in res[:22]].count("OK") == 22
     assert [r.state for r in res[24:]] == ["LOST"] * 4, [r.state for r in res]
     for r, T_wc in zip(res[24:], poses[24:]):
@@ -347,20 +355,8 @@ def test_a_map_reset_starts_where_the_wheel_odometry_carried_the_base():
     With wheel odometry the new map's first camera is put where the odometry carried the base,
     so map stays put: the poses after the reset are where the base truly is, not back at the
     start pose turned by what the base turned meanwhile."""
-    room = BoxRoom((3.0, 1.5, 3.0), tex_size=768, seed=3)
-    poses = orbit_trajectory(28, radius=1.0, arc=np.pi / 2)
-    s = System(CAM, config={"planar_motion": "auto"}, threads=False, T_map_cam0=T_BASE_CAM_LEVEL)
-    res = []
-    for i, T_wc in enumerate(poses[:14]):
-        l, r = room.render_stereo(T_wc, CAM)
-        if 2 <= i < 8:
-            l, r = np.full_like(l, 128), np.full_like(r, 128)
-        f = s.make_frame(0.05 * i, l, r)
-        T = inv_T(poses[0]) @ T_wc
-        T[:3, 3] *= 1.02
-        f.T_odom_cam = T_BASE_CAM_LEVEL @ T
-        res.append(s.track(f.stamp, frame=f))
-    s.shutdown()
+    poses = orbit_trajectory(28, radius=1.0, arc=np.pi / 2)[:14]
+    s, res = _track_with_odometry(poses, lambda i: 2 <= i < 8)
     assert s.n_keyframes_created > len(s.map.keyframes), "no reset"     # a map was thrown away
     after = [(r, T_wc) for r, T_wc in zip(res[8:], poses[8:]) if r.T_map_cam is not None]
     assert len(after) >= 4, [r.state for r in res]
