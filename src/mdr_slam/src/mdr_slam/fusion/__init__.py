@@ -16,8 +16,8 @@ from .mesh import (auto_views, mesh_from_map, render_depth, tsdf_mesh, views_fro
                    write_mesh)
 
 __all__ = ["limit_openmp_threads", "VoxelMap", "VoxelMapConfig", "IntegrationStats", "normal_bins",
-           "voxel_downsample", "GridExtent", "free_footprint", "grid_axes", "grid_origin_T", "occupancy_grid",
-           "render_depth", "auto_views", "views_from_trajectory", "tsdf_mesh", "mesh_from_map",
+           "voxel_downsample", "GridExtent", "free_footprint", "grid_axes", "grid_origin_T",
+           "occupancy_grid", "render_depth", "auto_views", "views_from_trajectory", "tsdf_mesh", "mesh_from_map",
            "write_mesh"]
 
 

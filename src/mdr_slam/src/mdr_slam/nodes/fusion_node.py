@@ -428,24 +428,25 @@ class FusionNode:
     def on_publish(self, _event=None):
         if self.closed:
             return
+        base = self._base_position()
         if not self.dirty:
             # the map is unchanged (no clouds while LOST), but the freed footprint follows the base
-            base = self._base_position()
             if base is None or (self.base is not None and
                                 np.linalg.norm(base - self.base) < 2 * self.cfg.grid_resolution):
                 return
         self.dirty = False
         try:
-            self.publish()
+            self.publish(base)
         except Exception as e:
             self.warn("publish", "publishing the map failed: %r" % (e,), "err")
 
-    def publish(self):
+    def publish(self, base=None):
+        """Map points and grid of a snapshot of the map; ``base``: the base's position in map
+        (its footprint is freed in the grid)."""
         cfg = self.cfg
         with self.lock:  # only the copy holds the lock; integration goes on meanwhile
             c = self.map.to_cloud(min(map_min_confidence(self.products_params)))
         stamp = rospy.Time.now()
-        base = self._base_position()
         self.base = base
         around = [p for p in (self.camera, self.goal, base) if p is not None]
         around = np.array(around) if around else None
