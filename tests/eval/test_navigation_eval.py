@@ -114,3 +114,31 @@ def test_map_alignment_takes_out_a_rotated_map():
     assert np.degrees(np.arctan2(A[1, 0], A[0, 0])) == pytest.approx(-6.0, abs=0.5)
     assert np.array_equal(map_alignment(est[:5], true[:5]), np.eye(3))   # 0.4 m: no rotation
     assert np.array_equal(map_alignment([], []), np.eye(3))
+
+
+def test_keyframe_trajectory_error_keeps_a_bent_map_and_drops_a_rotated_one():
+    """Keyframes of an L-shaped drive: the whole map rotated and shifted (one heading error from
+    the start) is aligned away; a map whose second leg a bad loop correction turned by 10 degrees
+    about the corner keeps that bend as error; keyframes without a true pose nearby are left out."""
+    from mdr_slam.eval.navigation import keyframe_trajectory_error
+    gt_t = np.arange(0.0, 40.0, 0.02)
+    leg = np.clip(gt_t / 20.0, 0, 1)[:, None] * [10.0, 0.0] + \
+        np.clip(gt_t / 20.0 - 1.0, 0, 1)[:, None] * [0.0, 8.0]
+    gt_xy = leg + [1.0, 2.0]
+    kf_t = np.arange(0.5, 40.0, 1.0)
+    truth = np.c_[np.interp(kf_t, gt_t, gt_xy[:, 0]), np.interp(kf_t, gt_t, gt_xy[:, 1])]
+    a = np.radians(5.0)
+    R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    rotated = truth @ R.T + [0.3, -0.2]
+    got = keyframe_trajectory_error(kf_t, rotated, gt_t, gt_xy)
+    assert got["keyframes"] == len(kf_t) and got["rmse_m"] < 1e-6
+    b = np.radians(10.0)
+    Rb = np.array([[np.cos(b), -np.sin(b)], [np.sin(b), np.cos(b)]])
+    corner = truth[np.argmin(np.abs(kf_t - 20.0))]
+    bent = np.where((kf_t > 20.0)[:, None], (truth - corner) @ Rb.T + corner, truth)
+    got = keyframe_trajectory_error(kf_t, bent, gt_t, gt_xy)
+    assert 0.3 < got["rmse_m"] < 1.4 and got["max_m"] > 0.5, got
+    late = np.r_[kf_t, [100.0, 200.0]]                        # no truth near these stamps
+    got = keyframe_trajectory_error(late, np.r_[truth, [[0, 0], [5, 5]]], gt_t, gt_xy)
+    assert got["keyframes"] == len(kf_t) and got["rmse_m"] < 1e-6
+    assert keyframe_trajectory_error(kf_t[:2], truth[:2], gt_t, gt_xy) is None

@@ -7,16 +7,18 @@ about half out of sight of the previous one) go to move_base's action server one
 
 Per goal: ``reached`` (move_base SUCCEEDED and the true base within ``REACHED_SLACK`` m of the
 goal), ``time_s`` (sim time), ``path_m`` (true path) against ``shortest_m`` (the true grid, disc
-robot, from where the robot really was when the goal was sent), ``collisions`` (the robot's footprint against the scene), ``min_clearance_m`` (footprint
-to the true obstacles), ``plans_through_occupied`` (global plans crossing a cell the last grid
-before them marked occupied), ``max_localization_error_m`` (tf ``map -> base_link`` against the
-true base, the map laid on the scene by the trajectory up to the goal: the pose's error against
-its own map; goals are placed on the map the same way, as a user picks them on its walls) and
-``max_error_from_start_m`` (the map fixed to the scene at the first tracked frame). Then the
-final map and grid against the scene (map points within 5 cm of a true surface; occupied grid
-cells within one cell of a true obstacle; true obstacle cells within ``RECALL_RANGE`` m of the
-path the grid holds), the stack's CPU and RSS (every process, move_base included: median and
-max), and a top view. Writes ``DIR/navigation.json``, ``DIR/navigation.md``,
+robot, from where the robot really was when the goal was sent), ``collisions`` (the robot's
+footprint against the scene), ``min_clearance_m`` (footprint to the true obstacles),
+``plans_through_occupied`` (global plans crossing a cell the last grid before them marked
+occupied), ``max_localization_error_m`` (tf ``map -> base_link`` against the true base, the map
+laid on the scene by the trajectory up to the goal: the pose's error against its own map; goals are
+placed on the map the same way, as a user picks them on its walls) and ``max_error_from_start_m``
+(the map fixed to the scene at the first tracked frame). Then the final map and grid against the
+scene (map points within 5 cm of a true surface; occupied grid cells within one cell of a true
+obstacle; true obstacle cells within ``RECALL_RANGE`` m of the path the grid holds), the map's
+keyframe trajectory against the truth (``keyframe_trajectory``: aligned RMSE and max, after the
+pose node's corrections and as first published), the stack's CPU and RSS (every process, move_base
+included: median and max), and a top view. Writes ``DIR/navigation.json``, ``DIR/navigation.md``,
 ``DIR/<scene>/top.png`` and, for each missed goal k, move_base's global and local costmaps then
 (``DIR/<scene>/miss_<k>_costmap.npz``, ``miss_<k>_local_costmap.npz`` and ``.png``); each scene's
 launch logs in ``DIR/<scene>/``.
@@ -37,8 +39,8 @@ from typing import Dict, List, Optional
 import numpy as np
 import psutil
 
-from ..eval.navigation import (localization_errors, map_alignment, plan_crosses_occupied,
-                               sample_goals,
+from ..eval.navigation import (keyframe_trajectory_error, localization_errors, map_alignment,
+                               plan_crosses_occupied, sample_goals,
                                score_goal, summarise, true_grid)
 from ..nav import plan_path
 from .bench_live import _NodeUsage, _free_port
@@ -139,6 +141,34 @@ def _duration(s: float):
     return rospy.Duration(s)
 
 
+def _keyframe_trajectory(watch, buf, rospy) -> Optional[dict]:
+    """The map's keyframes against the truth (keyframe_trajectory_error): as the pose node last
+    published them (``final``, loop and BA corrections in) and as it first published each
+    (``as_created``). None without the camera's mount in tf or without keyframes."""
+    import tf2_ros
+    from ..conversions import transform_stamped_to_matrix
+    if not watch.camera_frame:
+        return None
+    try:
+        T_base_cam = transform_stamped_to_matrix(buf.lookup_transform(
+            "base_link", watch.camera_frame, rospy.Time(0)))
+    except tf2_ros.TransformException:
+        return None
+    T_cam_base = np.linalg.inv(T_base_cam)
+    with watch.lock:
+        gt = list(watch.gt)
+        kfs = {name: sorted(d.values(), key=lambda v: v[0])
+               for name, d in (("final", watch.kf_last), ("as_created", watch.kf_first))}
+    gt_t = [t for t, _T in gt]
+    gt_xy = [T[:2, 3] for _t, T in gt]
+    out = {}
+    for name, v in kfs.items():
+        out[name] = keyframe_trajectory_error([t for t, _T in v],
+                                              [(T @ T_cam_base)[:2, 3] for _t, T in v],
+                                              gt_t, gt_xy)
+    return out if any(out.values()) else None
+
+
 class _Watch:
     """What the bench hears: true base poses, collisions, grids, global plans."""
 
@@ -164,6 +194,25 @@ class _Watch:
         self.subs += [rospy.Subscriber("/diagnostics", DiagnosticArray, self.on_diag, queue_size=20),
                       rospy.Subscriber("mdr/tracking_state", TrackingState, self.on_state,
                                        queue_size=50)]
+        from mdr_slam_msgs.msg import KeyFrameArray
+        from sensor_msgs.msg import CameraInfo
+        # the map's keyframes (T_map_camera) as first published and after every correction
+        self.kf_first: Dict[int, tuple] = {}
+        self.kf_last: Dict[int, tuple] = {}
+        self.camera_frame = None              # the left camera's optical frame (the keyframes')
+        self.subs += [rospy.Subscriber("mdr/keyframes", KeyFrameArray, self.on_keyframes,
+                                       queue_size=50),
+                      rospy.Subscriber(RECORD_TOPICS[2], CameraInfo, self.on_info, queue_size=1)]
+
+    def on_keyframes(self, m):
+        with self.lock:
+            for kf in m.keyframes:
+                v = (kf.stamp.to_sec(), self._pose_to_matrix(kf.pose))
+                self.kf_first.setdefault(int(kf.id), v)
+                self.kf_last[int(kf.id)] = v
+
+    def on_info(self, m):
+        self.camera_frame = m.header.frame_id or self.camera_frame
 
     def on_diag(self, m):
         for st in m.status:
@@ -574,6 +623,7 @@ def run_scene(args, scene_name: str, out_dir: str) -> dict:
         result["tracking_states"] = {name: int(np.sum(st == v)) for name, v in (
             ("not_initialized", 0), ("ok", 1), ("lost", 2), ("relocalized", 3))}
         result["diagnostics"] = dict(watch.diag)
+        result["keyframe_trajectory"] = _keyframe_trajectory(watch, buf, rospy)
         result["resources"] = usage.summary()
         # the final map and grid
         from mdr_slam_msgs.srv import SaveMap
@@ -635,6 +685,14 @@ def _markdown(report: dict) -> str:
             lines.append("Map: %s. Grid: %s." % (
                 ", ".join("%s %s" % kv for kv in sc["map"].items()),
                 ", ".join("%s %s" % kv for kv in sc.get("grid", {}).items())))
+        kt = sc.get("keyframe_trajectory") or {}
+        if kt.get("final"):
+            lines += ["", "Keyframe trajectory against the truth (aligned): RMSE %s m, max %s m "
+                      "over %d keyframes, corrections included; as each was first published: %s."
+                      % (kt["final"]["rmse_m"], kt["final"]["max_m"], kt["final"]["keyframes"],
+                         "RMSE %s m, max %s m" % (kt["as_created"]["rmse_m"],
+                                                  kt["as_created"]["max_m"])
+                         if kt.get("as_created") else "-")]
         res = sc.get("resources", {})
         if res:
             lines += ["", "| process | CPU % median | CPU % max | RSS MB median | RSS MB max |",

@@ -21,8 +21,8 @@ from scipy.ndimage import distance_transform_edt, label
 from ..nav import cell_to_world, plan_path, traversable, world_to_cell
 
 __all__ = ["TrueGrid", "true_grid", "sample_goals", "path_length", "clearance_along",
-           "plan_crosses_occupied", "localization_errors", "map_alignment", "score_goal",
-           "summarise"]
+           "plan_crosses_occupied", "localization_errors", "map_alignment",
+           "keyframe_trajectory_error", "score_goal", "summarise"]
 
 OCCUPIED = 100
 GOAL_CLEARANCE = 0.45     # m from a goal's centre to the nearest true obstacle
@@ -209,6 +209,35 @@ def map_alignment(est_xy, true_xy) -> np.ndarray:
     R, t, _ = umeyama_alignment(est.T, true.T, False)
     A[:2, :2], A[:2, 2] = R, t
     return A
+
+
+def keyframe_trajectory_error(kf_t: Sequence[float], kf_xy, gt_t: Sequence[float], gt_xy,
+                              max_gap: float = 0.5) -> Optional[Dict]:
+    """The map's keyframe trajectory against the truth, its absolute trajectory error (evo's APE
+    on positions after :func:`map_alignment`): ``kf_xy`` the keyframes' base positions in
+    ``map`` (as the pose node last published them, loop and BA corrections included, or as
+    first published), ``gt_xy`` the true base positions at ``gt_t``. A localization error that
+    the map shares (the map drifted with the pose) is not in it; a map a loop closure bent is.
+    ``{"keyframes", "rmse_m", "max_m"}``; None with fewer than 3 keyframes matched in time."""
+    kf_t = np.asarray(kf_t, float)
+    kf_xy = np.asarray(kf_xy, float).reshape(-1, 2)
+    gt_t, gt_xy = np.asarray(gt_t, float), np.asarray(gt_xy, float).reshape(-1, 2)
+    if len(kf_t) < 3 or len(gt_t) < 2:
+        return None
+    order = np.argsort(gt_t)
+    gt_t, gt_xy = gt_t[order], gt_xy[order]
+    j = np.clip(np.searchsorted(gt_t, kf_t), 1, len(gt_t) - 1)
+    gap = np.minimum(np.abs(kf_t - gt_t[j - 1]), np.abs(gt_t[j] - kf_t))
+    keep = gap <= max_gap
+    if keep.sum() < 3:
+        return None
+    w = np.clip((kf_t - gt_t[j - 1]) / np.maximum(gt_t[j] - gt_t[j - 1], 1e-9), 0.0, 1.0)
+    truth = (gt_xy[j - 1] + w[:, None] * (gt_xy[j] - gt_xy[j - 1]))[keep]
+    est = kf_xy[keep]
+    A = map_alignment(est, truth)
+    err = np.linalg.norm(est @ A[:2, :2].T + A[:2, 2] - truth, axis=1)
+    return {"keyframes": int(len(err)), "rmse_m": round(float(np.sqrt(np.mean(err ** 2))), 3),
+            "max_m": round(float(err.max()), 3)}
 
 
 def score_goal(goal: Dict, reached: bool, time_s: float, true_xy, tg: TrueGrid,
