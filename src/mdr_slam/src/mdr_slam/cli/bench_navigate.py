@@ -677,7 +677,8 @@ def _markdown(report: dict) -> str:
         for i, r in enumerate(sc.get("goals", [])):
             lines.append("| %d | %s | %s | %s | %.1f | %.2f | %.2f | %d | %.2f | %d/%d | %s | %s |" % (
                 i, "yes" if r["hidden"] else "", "yes" if r["reached"] else "**no**",
-                r["move_base_state"] + (" (resent)" if r.get("resent") else ""), r["time_s"], r["path_m"], r["shortest_m"], r["collisions"],
+                r["move_base_state"] + (" (resent)" if r.get("resent") else ""), r["time_s"],
+                r["path_m"], r["shortest_m"], r["collisions"],
                 r["min_clearance_m"], r["plans_through_occupied"], r["plans"],
                 r["max_localization_error_m"], r.get("max_error_from_start_m")))
         lines.append("")
