@@ -1098,6 +1098,13 @@ def test_proximity_loop_closes_a_loop_the_bow_misses(orbit_loop, orbit_proximity
     D = inv_T(poses[ib]) @ poses[ia]
     assert np.linalg.norm(D[:3, 3]) < 0.4
     assert Rotation.from_matrix(D[:3, :3]).magnitude() < np.radians(20)
+    # the log's record of each loop (pose_node prints it): the same keyframes, the correction's
+    # size as the drift gate measured it, the keyframe path the loop spans (a 1 m circle's turn)
+    assert [cl[:2] for cl in lc.closed] == [tuple(lp) for lp in lc.loops]
+    kf_id, cand_id, stamp, moved, turned, path = lc.closed[0]
+    assert stamp == s.map.keyframes[kf_id].stamp
+    assert 0.0 <= moved < 0.5 and 0.0 <= turned < 20.0, (moved, turned)
+    assert 4.0 < path < 8.0, path
     off = _loop_run(images, LOOP_PROXIMITY=False)
     assert off.loop_closing.loops == [] and off.loop_closing.proximity_tries == 0
 

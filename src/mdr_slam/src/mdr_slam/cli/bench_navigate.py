@@ -157,16 +157,22 @@ def _keyframe_trajectory(watch, buf, rospy) -> Optional[dict]:
     T_cam_base = np.linalg.inv(T_base_cam)
     with watch.lock:
         gt = list(watch.gt)
-        kfs = {name: sorted(d.values(), key=lambda v: v[0])
+        kfs = {name: list(d.values())
                for name, d in (("final", watch.kf_last), ("as_created", watch.kf_first))}
+        loops = list(watch.loops)
     gt_t = [t for t, _T in gt]
     gt_xy = [T[:2, 3] for _t, T in gt]
-    out = {}
-    for name, v in kfs.items():
-        out[name] = keyframe_trajectory_error([t for t, _T in v],
-                                              [(T @ T_cam_base)[:2, 3] for _t, T in v],
-                                              gt_t, gt_xy)
-    return out if any(out.values()) else None
+
+    def ate(v):
+        v = sorted(v, key=lambda e: e[0])
+        return keyframe_trajectory_error([t for t, _T in v],
+                                         [(T @ T_cam_base)[:2, 3] for _t, T in v], gt_t, gt_xy)
+    out = {name: ate(v) for name, v in kfs.items()}
+    # each loop correction (a closure, or the global BA after it): the keyframes it found, against
+    # the truth before and after it
+    out["loops"] = [{"stamp": round(st, 2), "keyframes_moved": n, "before": ate(b.values()),
+                     "after": ate(a.values())} for st, n, b, a in loops]
+    return out if out["final"] else None
 
 
 class _Watch:
@@ -200,16 +206,21 @@ class _Watch:
         self.kf_first: Dict[int, tuple] = {}
         self.kf_last: Dict[int, tuple] = {}
         self.camera_frame = None              # the left camera's optical frame (the keyframes')
+        self.loops: List[tuple] = []          # (stamp, keyframes moved, before, after) per loop
         self.subs += [rospy.Subscriber("mdr/keyframes", KeyFrameArray, self.on_keyframes,
                                        queue_size=50),
                       rospy.Subscriber(RECORD_TOPICS[2], CameraInfo, self.on_info, queue_size=1)]
 
     def on_keyframes(self, m):
         with self.lock:
+            before = dict(self.kf_last) if m.reason == m.LOOP_CLOSURE else None
             for kf in m.keyframes:
                 v = (kf.stamp.to_sec(), self._pose_to_matrix(kf.pose))
                 self.kf_first.setdefault(int(kf.id), v)
                 self.kf_last[int(kf.id)] = v
+            if before is not None:   # the keyframes just before and after a loop's correction
+                self.loops.append((m.header.stamp.to_sec(), len(m.keyframes), before,
+                                   {k: self.kf_last[k] for k in before}))
 
     def on_info(self, m):
         self.camera_frame = m.header.frame_id or self.camera_frame
@@ -694,6 +705,13 @@ def _markdown(report: dict) -> str:
                          "RMSE %s m, max %s m" % (kt["as_created"]["rmse_m"],
                                                   kt["as_created"]["max_m"])
                          if kt.get("as_created") else "-")]
+            for lp in kt.get("loops", []):
+                if lp["before"] and lp["after"]:
+                    lines.append("Loop correction at %.1f s (%d keyframes moved): keyframe RMSE %s -> "
+                                 "%s m, max %s -> %s m." % (
+                                     lp["stamp"], lp["keyframes_moved"], lp["before"]["rmse_m"],
+                                     lp["after"]["rmse_m"], lp["before"]["max_m"],
+                                     lp["after"]["max_m"]))
         res = sc.get("resources", {})
         if res:
             lines += ["", "| process | CPU % median | CPU % max | RSS MB median | RSS MB max |",

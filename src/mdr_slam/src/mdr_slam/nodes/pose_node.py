@@ -566,6 +566,7 @@ class OrbNode(PoseMapServices):
         self.kf_poses = {}                 # last published T_map_kf per keyframe id
         self.last_stamp = None
         self.last_state = "NOT_INITIALIZED"
+        self.n_loops_logged = 0                # loop closures the log has told of
         self.camera_frame_id = None
         # tracking starts before base -> camera is in tf: its results wait here (at most the
         # wait's frames), in a system whose world is the first camera until it is anchored
@@ -832,6 +833,8 @@ class OrbNode(PoseMapServices):
             self.last_state = res.state
         if res.corrections is not None:
             reason, cid, kfs = res.corrections
+            if reason == "loop_closure":
+                self._log_loops()
             if reason == "loop_closure" and res.ref_keyframe_id in kfs and \
                     res.ref_keyframe_id in self.kf_poses:
                 # the jump goes into map -> odom so odom -> base_link stays continuous (REP-105)
@@ -847,6 +850,21 @@ class OrbNode(PoseMapServices):
             self.relay.publish(stamp, res.T_map_cam, self.T_map_odom)
         elif getattr(res, "T_map_cam_coasted", None) is not None:
             self.relay.coast(stamp, res.T_map_cam_coasted)
+
+    def _log_loops(self):
+        """One line per loop closure (ORB-SLAM2 prints "Loop detected!"): which keyframes, how
+        far apart along the map's keyframe path, and how far the correction moved and turned
+        the current keyframe."""
+        closed = getattr(getattr(self.system, "loop_closing", None), "closed", None)
+        if not closed:
+            return
+        if len(closed) < self.n_loops_logged:   # a new map (reset, load) started a new list
+            self.n_loops_logged = 0
+        for kf, cand, st, moved, turned, path in closed[self.n_loops_logged:]:
+            rospy.loginfo("pose_node: loop closed at %.3f: keyframe %d with keyframe %d, %.1f m "
+                          "of keyframe path apart; the correction moved it %.2f m and turned it "
+                          "%.1f deg", st, kf, cand, path, moved, turned)
+        self.n_loops_logged = len(closed)
 
     def publish_keyframes(self, stamp, reason: int, cid: int, kfs: dict) -> None:
         msg = KeyFrameArray()

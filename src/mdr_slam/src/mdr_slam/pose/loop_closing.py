@@ -205,6 +205,8 @@ class LoopClosing:
         self.min_consistency = LOOP_CONSISTENCY
         self.min_inliers = 20
         self.loops: List[tuple] = []               # accepted (current kf id, loop kf id)
+        # accepted, for the log: (kf id, cand id, kf stamp, moved m, turned deg, keyframe path m)
+        self.closed: List[tuple] = []
         self.global_ba_runs: List[dict] = []       # global_bundle_adjustment summaries (+ ms)
         self.rejected: List[tuple] = []            # (kf, cand, moved m, turned deg, path m)
         self.images: Dict[int, tuple] = {}         # kf id -> (half, quarter) left image (proximity)
@@ -216,6 +218,7 @@ class LoopClosing:
         self.one_way: List[tuple] = []             # refused by the two-way check (kf, cand, m, deg)
         self._exclude: set = set()
         self.last_correction = (0.0, 0.0)          # (m, deg) of the last verified loop transform
+        self._last_path = 0.0                      # m of keyframe path it spans
         self._weak: List[tuple] = []               # (kf id, S) of weak proximity verifications
         self.ill_conditioned: List[tuple] = []     # refused: (kf, cand, inliers, rot sigma, turn deg)
 
@@ -595,6 +598,7 @@ class LoopClosing:
                    2.0 * np.sin(np.radians(rot) / 2.0)) * max(path, 1.0)
         ok = moved <= allowed and rot <= float(LOOP_MAX_ROTATION_DEG)
         self.last_correction = (moved, rot)
+        self._last_path = path
         if ok:
             ok = self.odometry_agrees(kf, cand, S)
         if not ok:
@@ -840,6 +844,8 @@ class LoopClosing:
         mp.n_loop_closures += 1
         self.last_loop_kf_id = kf.id
         self.loops.append((kf.id, cand.id))
+        self.closed.append((kf.id, cand.id, float(kf.stamp), float(self.last_correction[0]),
+                            float(self.last_correction[1]), float(getattr(self, "_last_path", 0.0))))
         self.corrections.append(("loop_closure", {k: mp.keyframes[k].T_cw.copy() for k in new}))
 
 
