@@ -1100,11 +1100,12 @@ def test_proximity_loop_closes_a_loop_the_bow_misses(orbit_loop, orbit_proximity
     assert Rotation.from_matrix(D[:3, :3]).magnitude() < np.radians(20)
     # the log's record of each loop (pose_node prints it): the same keyframes, the correction's
     # size as the drift gate measured it, the keyframe path the loop spans (a 1 m circle's turn)
-    assert [cl[:2] for cl in lc.closed] == [tuple(lp) for lp in lc.loops]
-    kf_id, cand_id, stamp, moved, turned, path = lc.closed[0]
-    assert stamp == s.map.keyframes[kf_id].stamp
-    assert 0.0 <= moved < 0.5 and 0.0 <= turned < 20.0, (moved, turned)
-    assert 4.0 < path < 8.0, path
+    assert [(cl["kf"], cl["cand"]) for cl in lc.closed] == [tuple(lp) for lp in lc.loops]
+    cl = lc.closed[0]
+    assert cl["stamp"] == s.map.keyframes[cl["kf"]].stamp
+    assert 0.0 <= cl["moved_m"] < 0.5 and 0.0 <= cl["turned_deg"] < 20.0, cl
+    assert 4.0 < cl["path_m"] < 8.0, cl
+    assert cl["odometry_check"] is None      # no wheel odometry in this run
     off = _loop_run(images, LOOP_PROXIMITY=False)
     assert off.loop_closing.loops == [] and off.loop_closing.proximity_tries == 0
 

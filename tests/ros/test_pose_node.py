@@ -407,3 +407,35 @@ def test_reset_keeps_the_sparse_map(rospy_client, start_process, tmp_path):
     node.stop()
     assert folder_sessions(str(maps / "last")) == {"pose": "S~1"}, node.output()
     assert folder_sessions(str(maps / "last.1")) == {"pose": "S"}
+
+
+def test_each_loop_closure_gets_one_log_line_with_its_checks(monkeypatch):
+    """OrbNode._log_loops: one line per loop closed since the last call, with the map and
+    odometry checks where they ran; a new map (shorter list) starts the count again."""
+    import types
+    from mdr_slam.nodes import pose_node
+    lines = []
+    monkeypatch.setattr(pose_node.rospy, "loginfo", lambda fmt, *a: lines.append(fmt % a))
+    node = pose_node.OrbNode.__new__(pose_node.OrbNode)
+    closed = [dict(kf=576, cand=366, stamp=313.8, moved_m=0.81, turned_deg=2.1, path_m=39.3,
+                   map_check=(120, 131, 6.5), odometry_check=(0.42, 0.95, 38.0)),
+              dict(kf=590, cand=223, stamp=321.4, moved_m=0.16, turned_deg=1.6, path_m=70.4,
+                   map_check=None, odometry_check=None)]
+    node.system = types.SimpleNamespace(loop_closing=types.SimpleNamespace(closed=closed[:1]))
+    node.n_loops_logged = 0
+    node._log_loops()
+    node._log_loops()                                   # nothing new: nothing logged
+    assert lines == ["pose_node: loop closed at 313.800: keyframe 576 with keyframe 366, 39.3 m "
+                     "of keyframe path apart; the correction moved it 0.81 m and turned it 2.1 "
+                     "deg; the loop keyframe's points matched 120 -> 131 times, moved 6.5 px; "
+                     "0.42 -> 0.95 m off the wheel odometry over 38.0 m"]
+    node.system.loop_closing.closed = closed
+    node._log_loops()
+    assert len(lines) == 2 and "keyframe 590 with keyframe 223" in lines[1] and \
+        lines[1].endswith("turned it 1.6 deg")
+    node.system.loop_closing.closed = closed[1:]        # a new map's first loop
+    node._log_loops()
+    assert len(lines) == 3 and "keyframe 590" in lines[2]
+    node.system = None                                  # between maps: nothing to tell
+    node._log_loops()
+    assert len(lines) == 3

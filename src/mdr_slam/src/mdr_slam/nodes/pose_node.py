@@ -860,10 +860,18 @@ class OrbNode(PoseMapServices):
             return
         if len(closed) < self.n_loops_logged:   # a new map (reset, load) started a new list
             self.n_loops_logged = 0
-        for kf, cand, st, moved, turned, path in closed[self.n_loops_logged:]:
+        for c in closed[self.n_loops_logged:]:
+            checks = ""
+            if c["map_check"] is not None:
+                checks += "; the loop keyframe's points matched %d -> %d times, moved %.1f px" \
+                    % c["map_check"]
+            if c["odometry_check"] is not None:
+                checks += "; %.2f -> %.2f m off the wheel odometry over %.1f m" \
+                    % c["odometry_check"]
             rospy.loginfo("pose_node: loop closed at %.3f: keyframe %d with keyframe %d, %.1f m "
                           "of keyframe path apart; the correction moved it %.2f m and turned it "
-                          "%.1f deg", st, kf, cand, path, moved, turned)
+                          "%.1f deg%s", c["stamp"], c["kf"], c["cand"], c["path_m"], c["moved_m"],
+                          c["turned_deg"], checks)
         self.n_loops_logged = len(closed)
 
     def publish_keyframes(self, stamp, reason: int, cid: int, kfs: dict) -> None:

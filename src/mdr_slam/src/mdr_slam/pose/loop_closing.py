@@ -205,8 +205,11 @@ class LoopClosing:
         self.min_consistency = LOOP_CONSISTENCY
         self.min_inliers = 20
         self.loops: List[tuple] = []               # accepted (current kf id, loop kf id)
-        # accepted, for the log: (kf id, cand id, kf stamp, moved m, turned deg, keyframe path m)
-        self.closed: List[tuple] = []
+        # accepted, for the log: dicts of kf, cand (ids), stamp (kf's), moved_m, turned_deg (the
+        # correction at kf), path_m (keyframe path between them), and the checks it passed:
+        # map_check (matches uncorrected, corrected, median px moved) and odometry_check (m off
+        # the odometry before, after, odometry path m), None where not run
+        self.closed: List[dict] = []
         self.global_ba_runs: List[dict] = []       # global_bundle_adjustment summaries (+ ms)
         self.rejected: List[tuple] = []            # (kf, cand, moved m, turned deg, path m)
         self.images: Dict[int, tuple] = {}         # kf id -> (half, quarter) left image (proximity)
@@ -844,8 +847,13 @@ class LoopClosing:
         mp.n_loop_closures += 1
         self.last_loop_kf_id = kf.id
         self.loops.append((kf.id, cand.id))
-        self.closed.append((kf.id, cand.id, float(kf.stamp), float(self.last_correction[0]),
-                            float(self.last_correction[1]), float(getattr(self, "_last_path", 0.0))))
+        mc = [c for c in self.correction_checks if c[:2] == (kf.id, cand.id)]
+        oc = [c for c in self.odom_checks if c[:2] == (kf.id, cand.id)]
+        self.closed.append(dict(
+            kf=kf.id, cand=cand.id, stamp=float(kf.stamp), moved_m=float(self.last_correction[0]),
+            turned_deg=float(self.last_correction[1]), path_m=float(self._last_path),
+            map_check=(mc[-1][2], mc[-1][3], mc[-1][4]) if mc else None,
+            odometry_check=(oc[-1][3], oc[-1][4], oc[-1][2]) if oc else None))
         self.corrections.append(("loop_closure", {k: mp.keyframes[k].T_cw.copy() for k in new}))
 
 
