@@ -180,18 +180,26 @@ def localization_errors(est_t: Sequence[float], est_xy, gt_t: Sequence[float], g
     """|estimated - true| base position (m, in the plane) at each estimate's stamp, the truth
     interpolated linearly; estimates farther than ``max_gap`` s from any truth are dropped.
     Both positions in the same frame (the caller maps the estimate's ``map`` into the world)."""
-    est_t, gt_t = np.asarray(est_t, float), np.asarray(gt_t, float)
-    est_xy, gt_xy = np.asarray(est_xy, float).reshape(-1, 2), np.asarray(gt_xy, float).reshape(-1, 2)
-    if not len(est_t) or len(gt_t) < 2:
-        return np.zeros(0)
+    est_xy = np.asarray(est_xy, float).reshape(-1, 2)
+    truth, keep = _truth_at(est_t, gt_t, gt_xy, max_gap)
+    return np.linalg.norm(est_xy[keep] - truth, axis=1)
+
+
+def _truth_at(t: Sequence[float], gt_t: Sequence[float], gt_xy, max_gap: float):
+    """The true positions at stamps ``t``, interpolated linearly, and which of ``t`` have one
+    (a truth within ``max_gap`` s): ``(truth (K, 2), keep (N,) bool)``."""
+    t, gt_t = np.asarray(t, float), np.asarray(gt_t, float)
+    gt_xy = np.asarray(gt_xy, float).reshape(-1, 2)
+    if not len(t) or len(gt_t) < 2:
+        return np.zeros((0, 2)), np.zeros(len(t), bool)
     order = np.argsort(gt_t)
     gt_t, gt_xy = gt_t[order], gt_xy[order]
-    j = np.clip(np.searchsorted(gt_t, est_t), 1, len(gt_t) - 1)
-    gap = np.minimum(np.abs(est_t - gt_t[j - 1]), np.abs(gt_t[j] - est_t))
-    keep = (est_t >= gt_t[0] - max_gap) & (est_t <= gt_t[-1] + max_gap) & (gap <= max_gap)
-    w = np.clip((est_t - gt_t[j - 1]) / np.maximum(gt_t[j] - gt_t[j - 1], 1e-9), 0.0, 1.0)
+    j = np.clip(np.searchsorted(gt_t, t), 1, len(gt_t) - 1)
+    gap = np.minimum(np.abs(t - gt_t[j - 1]), np.abs(gt_t[j] - t))
+    keep = (t >= gt_t[0] - max_gap) & (t <= gt_t[-1] + max_gap) & (gap <= max_gap)
+    w = np.clip((t - gt_t[j - 1]) / np.maximum(gt_t[j] - gt_t[j - 1], 1e-9), 0.0, 1.0)
     truth = gt_xy[j - 1] + w[:, None] * (gt_xy[j] - gt_xy[j - 1])
-    return np.linalg.norm(est_xy - truth, axis=1)[keep]
+    return truth[keep], keep
 
 
 def map_alignment(est_xy, true_xy) -> np.ndarray:
@@ -219,20 +227,12 @@ def keyframe_trajectory_error(kf_t: Sequence[float], kf_xy, gt_t: Sequence[float
     first published), ``gt_xy`` the true base positions at ``gt_t``. A localization error that
     the map shares (the map drifted with the pose) is not in it; a map a loop closure bent is.
     ``{"keyframes", "rmse_m", "max_m"}``; None with fewer than 3 keyframes matched in time."""
-    kf_t = np.asarray(kf_t, float)
     kf_xy = np.asarray(kf_xy, float).reshape(-1, 2)
-    gt_t, gt_xy = np.asarray(gt_t, float), np.asarray(gt_xy, float).reshape(-1, 2)
-    if len(kf_t) < 3 or len(gt_t) < 2:
+    if len(kf_xy) < 3:
         return None
-    order = np.argsort(gt_t)
-    gt_t, gt_xy = gt_t[order], gt_xy[order]
-    j = np.clip(np.searchsorted(gt_t, kf_t), 1, len(gt_t) - 1)
-    gap = np.minimum(np.abs(kf_t - gt_t[j - 1]), np.abs(gt_t[j] - kf_t))
-    keep = gap <= max_gap
+    truth, keep = _truth_at(kf_t, gt_t, gt_xy, max_gap)
     if keep.sum() < 3:
         return None
-    w = np.clip((kf_t - gt_t[j - 1]) / np.maximum(gt_t[j] - gt_t[j - 1], 1e-9), 0.0, 1.0)
-    truth = (gt_xy[j - 1] + w[:, None] * (gt_xy[j] - gt_xy[j - 1]))[keep]
     est = kf_xy[keep]
     A = map_alignment(est, truth)
     err = np.linalg.norm(est @ A[:2, :2].T + A[:2, 2] - truth, axis=1)
