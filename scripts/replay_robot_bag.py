@@ -15,6 +15,11 @@ the first tracked frame, as ``mdr bench --navigate`` did before it aligned by th
     python scripts/replay_robot_bag.py BAG --set planar_motion=false          # a TrackerConfig field
     python scripts/replay_robot_bag.py BAG --const optimizer.ODOM_EDGES=False  # a pose module constant
     python scripts/replay_robot_bag.py BAG --const system.ODOMETRY_CALIBRATION=False
+    python scripts/replay_robot_bag.py BAG --threads --loops   # each verified loop against the truth
+
+``--loops`` prints every loop candidate that passed the geometric verification: its figures
+(correction, keyframe path, map and odometry checks), whether it closed, and how far the map's
+relative pose between the two keyframes is from the true one before and after the correction.
 """
 from __future__ import annotations
 
@@ -70,6 +75,61 @@ def _typed(cfg, key, value):
     return type(cur)(value) if isinstance(cur, (int, float)) else value
 
 
+def _rel_error(A, B):
+    D = inv_T(A) @ B
+    return float(np.linalg.norm(D[:3, 3])), float(np.degrees(Rotation.from_matrix(
+        D[:3, :3]).magnitude()))
+
+
+def _print_loops(verified, lc, gt_t, gt_T, T_base_cam):
+    """One line per verified loop candidate: the relative pose cand -> kf of the map, before and
+    after the correction, against the truth's (m, deg)."""
+    closed = {(c["found"], c["cand"]): c for c in lc.closed}
+    unconfirmed = {u[:2]: u[2] for u in lc.unconfirmed}
+    mapc = {c[:2]: c for c in lc.correction_checks}
+    odoc = {c[:2]: c for c in lc.odom_checks}
+    print("verified loop candidates (kf, cand, source): correction m/deg, keyframe path m; "
+          "map check n0 -> n1 (px); odometry check m before -> after over path; "
+          "map vs truth m/deg before -> after; verdict")
+    for v in verified:
+        Gk, Gc = (_interp(gt_t, gt_T, t) for t in (v["kf_t"], v["cand_t"]))
+        if Gk is None or Gc is None:
+            continue
+        true = inv_T(Gc @ T_base_cam) @ (Gk @ T_base_cam)
+        before = inv_T(v["cand_wc"]) @ v["kf_wc"]
+        after = inv_T(v["cand_wc"]) @ v["S"] @ v["kf_wc"]
+        e0, r0 = _rel_error(before, true)
+        e1, r1 = _rel_error(after, true)
+        key = (v["kf"], v["cand"])
+        c = closed.get(key)
+        mc, oc = mapc.get(key), odoc.get(key)
+        closing = any((x["kf"], x["cand"]) == key and x["found"] != x["kf"] for x in lc.closed)
+        verdict = ("confirmed it: CLOSED" if closing else
+                   "CLOSED" if c is not None and c["kf"] == v["kf"] else
+                   "CLOSED at %d" % c["kf"] if c is not None else
+                   "unconfirmed (%d)" % unconfirmed[key] if key in unconfirmed else
+                   "refused: drift" if not v["plausible"] and (oc is None or oc[-1]) else
+                   "refused: odometry" if not v["plausible"] else
+                   "refused: map check" if mc is not None and not mc[-1] else "refused: other")
+        print("  %4d %4d %-9s %5.2f m %5.1f deg over %6.1f m; map %s; odo %s; truth %.2f m "
+              "%.1f deg -> %.2f m %.1f deg: %s, %s"
+              % (v["kf"], v["cand"], "" if c is None else c["source"], v["moved"], v["turned"],
+                 v["path"], "-" if mc is None else "%d -> %d (%.1f px)" % mc[2:5],
+                 "-" if oc is None else "%.2f -> %.2f over %.1f" % (oc[3], oc[4], oc[2]),
+                 e0, r0, e1, r1, verdict,
+                 "better" if e1 + 0.05 * r1 < e0 + 0.05 * r0 else "WORSE"))
+    h = np.array(lc.held_ms)
+    if len(h):
+        print("  map lock held per keyframe by LoopClosing (s): median %.3f, p90 %.3f, max %.2f "
+              "over %d keyframes" % (np.median(h) / 1e3, np.percentile(h, 90) / 1e3,
+                                     h.max() / 1e3, len(h)))
+    for c in lc.closed:
+        if c.get("held_ms") is not None:
+            print("  loop %d-%d: map lock held %.2f s, pose graph %.2f s (%d edges)"
+                  % (c["kf"], c["cand"], c["held_ms"] / 1000.0, c["graph_ms"] / 1000.0,
+                     c["graph_edges"]))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("bag")
@@ -79,6 +139,8 @@ def main(argv=None) -> int:
     ap.add_argument("--const", action="append", default=[], metavar="MODULE.NAME=VALUE",
                     help="a constant of mdr_slam.pose.MODULE (ablations)")
     ap.add_argument("--no-odometry", action="store_true", help="frames without wheel odometry")
+    ap.add_argument("--loops", action="store_true",
+                    help="each verified loop candidate's figures against the truth")
     ap.add_argument("--out", default="", help=".npy of (stamp, tracked, error m, x, y) per frame")
     a = ap.parse_args(argv)
     import rosbag
@@ -111,6 +173,19 @@ def main(argv=None) -> int:
         M = importlib.import_module("mdr_slam.pose." + mod)
         setattr(M, name, type(getattr(M, name))(eval(v)))   # noqa: S307  (a developer's ablation)
     system = System(cam, cfg, threads=a.threads, T_map_cam0=T_base_cam)
+    verified = []
+    if a.loops and system.loop_closing is not None:
+        lc_ = system.loop_closing
+        gate = lc_.plausible_correction
+
+        def plausible(kf, cand, S):   # every verified candidate passes here first
+            ok = gate(kf, cand, S)
+            verified.append(dict(kf=kf.id, cand=cand.id, S=S.copy(), kf_wc=kf.T_wc.copy(),
+                                 cand_wc=cand.T_wc.copy(), kf_t=kf.stamp, cand_t=cand.stamp,
+                                 moved=lc_.last_correction[0], turned=lc_.last_correction[1],
+                                 path=lc_._last_path, plausible=ok))
+            return ok
+        lc_.plausible_correction = plausible
     pending, rows = {}, []
     held = None      # the last tracked frame's T_map_odom: a node without a coasted pose keeps it
     last = None      # the last tracked frame's (T_map_base, true T_world_base)
@@ -180,6 +255,8 @@ def main(argv=None) -> int:
     cal = getattr(system, "odometry_calibration", None)
     if cal is not None:
         print(cal.summary())
+    if verified:
+        _print_loops(verified, lc, gt_t, gt[1], T_base_cam)
     if a.out:
         np.save(a.out, out)
     return 0

@@ -656,6 +656,15 @@ def test_essential_graph_spreads_loop_error():
     assert np.linalg.norm(out[16][:3, 3] - true[16][:3, 3]) < 0.05
     err_mid_before = np.linalg.norm(est[8][:3, 3] - true[8][:3, 3])
     assert np.linalg.norm(out[8][:3, 3] - true[8][:3, 3]) < err_mid_before
+    from mdr_slam.pose.ba_process import BAWorker   # the same solve in the loop's child process
+    w = BAWorker()
+    try:
+        got = w.run((poses, edges, 0), {}, solver="essential_graph")
+        assert not w.failed
+    finally:
+        w.close()
+    for i in poses:
+        np.testing.assert_allclose(got[i], out[i], atol=1e-9)
 
 
 def test_mdr_vocab_trains_on_a_folder(tmp_path, sequence):
@@ -1106,6 +1115,10 @@ def test_proximity_loop_closes_a_loop_the_bow_misses(orbit_loop, orbit_proximity
     assert 0.0 <= cl["moved_m"] < 0.5 and 0.0 <= cl["turned_deg"] < 20.0, cl
     assert 4.0 < cl["path_m"] < 8.0, cl
     assert cl["odometry_check"] is None      # no wheel odometry in this run
+    assert cl["source"] == "proximity" and cl["graph_edges"] > 0, cl
+    assert 0.0 < cl["graph_ms"] <= cl["held_ms"], cl   # the solve is part of the lock's hold
+    # found by one keyframe, closed by a later one that saw the place through the same correction
+    assert cl["found"] == k and cl["kf"] > k, (cl, k)
     off = _loop_run(images, LOOP_PROXIMITY=False)
     assert off.loop_closing.loops == [] and off.loop_closing.proximity_tries == 0
 
@@ -1166,6 +1179,101 @@ def test_a_loop_correction_must_line_up_the_loop_keyframes_points(orbit_loop):
     _, _, before, after, shift, ok = lc.correction_checks[-1]
     assert ok and after >= 2 * before and shift > 12, lc.correction_checks[-1]
     assert len(lc.correction_checks) == 2
+
+
+def test_a_loop_is_closed_only_once_later_keyframes_confirm_its_correction(orbit_loop):
+    """confirm_pending (ORB-SLAM3's coincidences over three keyframes), on the orbit mapped
+    without loop closing: the last keyframes, drifted together by 0.3 m and 5 deg, see the first
+    keyframe's neighbourhood through the correction that undoes the drift, and the loop is closed
+    by the second of them. A look-alike correction (0.5 m and 10 deg) found by one keyframe is
+    not confirmed by the next two and is dropped without touching the map."""
+    from mdr_slam.pose import loop_closing
+    s = _loop_run(orbit_loop[1], LOOP_PROXIMITY=False)
+    lc, mp = s.loop_closing, s.map
+    assert lc.loops == [] and lc.pending is None
+    kfs = sorted(mp.good_keyframes(), key=lambda k: k.id)
+    last = kfs[-3:]
+    cand = min(kfs[:5], key=lambda k: np.linalg.norm(k.T_wc[:3, 3] - last[0].T_wc[:3, 3]))
+    wrong = make_T(Rotation.from_euler("y", 10.0, degrees=True).as_matrix(), [0.5, 0.0, 0.0])
+    poses = {k.id: k.T_cw.copy() for k in mp.good_keyframes()}
+    assert lc._defer(last[0], cand, wrong, "bow")
+    assert not lc.confirm_pending(last[1]) and lc.pending["missed"] == 1
+    assert not lc.confirm_pending(last[2]) and lc.pending is None
+    assert lc.unconfirmed == [(last[0].id, cand.id, 0)] and lc.loops == []
+    assert all(np.array_equal(k.T_cw, poses[k.id]) for k in mp.good_keyframes())
+    drift = make_T(Rotation.from_euler("y", 5.0, degrees=True).as_matrix(), [0.3, 0.0, 0.1])
+    for k in last:
+        k.set_pose(k.T_cw @ inv_T(drift))   # T_wc' = drift T_wc
+    S = inv_T(drift)
+
+    def off():   # of the last keyframe from where the consistent map had it
+        return np.linalg.norm(last[2].T_wc[:3, 3] - inv_T(poses[last[2].id])[:3, 3])
+    off0 = off()
+    with tuned(loop_closing, LOOP_CONFIRMATIONS=0):
+        assert not lc._defer(last[0], cand, S, "bow")   # off: the finder closes at once
+    assert lc._defer(last[0], cand, S, "bow")
+    assert not lc.confirm_pending(last[1]) and lc.pending["confirmed"] == 1
+    assert lc.confirm_pending(last[2]) and lc.pending is None
+    assert lc.loops == [(last[2].id, cand.id)] and lc.closed[-1]["found"] == last[0].id
+    assert lc.correction_checks[-1][3] >= loop_closing.LOOP_CONFIRM_MATCHES
+    # the loop undid most of the drift (the pose graph's chain edges still hold the drift's
+    # jump, since only the poses were moved, not their points)
+    assert off0 > 0.3 and off() < 0.5 * off0, (off0, off())
+
+
+def test_a_threaded_loop_solves_its_pose_graph_without_the_map_lock(orbit_loop):
+    """In threads, correct_loop leaves the essential graph to finish_correction, which the
+    LoopClosing thread calls without the map lock: tracking can take the lock while the graph
+    is solved (GTSAM keeps the GIL, so the solve goes to the BAWorker's child), and the result
+    is applied as in one piece. A keyframe made meanwhile follows its parent's correction."""
+    import threading
+    from mdr_slam.pose.ba_process import BAWorker
+    from mdr_slam.pose.optimizer import essential_graph_job
+    runs = []
+    for threaded in (False, True):
+        s = _loop_run(orbit_loop[1], LOOP_PROXIMITY=False)
+        lc, mp = s.loop_closing, s.map
+        kfs = sorted(mp.good_keyframes(), key=lambda k: k.id)
+        last = kfs[-3:]
+        cand = min(kfs[:5], key=lambda k: np.linalg.norm(k.T_wc[:3, 3] - last[0].T_wc[:3, 3]))
+        drift = make_T(Rotation.from_euler("y", 5.0, degrees=True).as_matrix(), [0.3, 0.0, 0.1])
+        for k in last:
+            k.set_pose(k.T_cw @ inv_T(drift))
+        child = last[-1]
+        s.threads = threaded
+        with mp.lock:
+            lc.correct_loop(last[1], cand, inv_T(drift), np.zeros(0, np.int64),
+                            np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64),
+                            n_match=100)
+        if threaded:
+            assert lc._graph_job is not None and lc.closed[-1]["graph_ms"] is None
+            before = child.T_wc.copy()
+            lock_free = []
+
+            class Worker(BAWorker):   # the child's answer, checked from another thread first
+                def run(self, args, kwargs, abort=None, solver=""):
+                    t = threading.Thread(target=lambda: lock_free.append(
+                        mp.lock.acquire(timeout=30.0) and (mp.lock.release() or True)))
+                    t.start()
+                    t.join()
+                    assert solver == "essential_graph"
+                    new = essential_graph_job(*args, **kwargs)
+                    new.pop(child.id)   # as if the child was made while the graph was solved
+                    return new
+            poses = lc._graph_job[0]
+            lc.finish_correction(Worker())
+            assert lock_free == [True]
+            assert lc.closed[-1]["graph_process"] and lc.closed[-1]["graph_ms"] > 0
+            par = child.parent
+            C = par.T_wc @ inv_T(poses[par.id])   # the parent's correction ...
+            np.testing.assert_allclose(child.T_wc, C @ before, atol=1e-6)   # ... is the child's
+        else:
+            assert lc._graph_job is None and not lc.closed[-1]["graph_process"]
+        runs.append({k.id: k.T_wc.copy() for k in mp.good_keyframes()})
+    sync, thr = runs
+    for kid in sync:   # the same solution
+        if kid != last[-1].id:
+            np.testing.assert_allclose(thr[kid], sync[kid], atol=1e-6)
 
 
 def test_proximity_needs_both_sides_to_agree(orbit_proximity_run, monkeypatch):

@@ -409,6 +409,35 @@ def test_reset_keeps_the_sparse_map(rospy_client, start_process, tmp_path):
     assert folder_sessions(str(maps / "last.1")) == {"pose": "S"}
 
 
+def test_a_lost_stretch_restarted_at_the_odometry_says_so_in_its_log_line(monkeypatch):
+    """OrbNode._log_transition: a line per change of state only, and the LOST -> OK that
+    restarted the map at the wheel odometry's pose (n_reanchored went up) tells it."""
+    import types
+    from mdr_slam.nodes import pose_node
+    lines = []
+    monkeypatch.setattr(pose_node.rospy, "loginfo", lambda fmt, *a: lines.append(fmt % a))
+    monkeypatch.setattr(pose_node.rospy, "logwarn", lambda fmt, *a: lines.append(fmt % a))
+    node = pose_node.OrbNode.__new__(pose_node.OrbNode)
+    node.last_state, node.n_reanchored_logged = "OK", 0
+    node.relay = types.SimpleNamespace(warn=types.SimpleNamespace(counts={"busy": 3}))
+
+    def res(state, n):
+        return types.SimpleNamespace(state=state, n_tracked=0 if state == "LOST" else 160,
+                                     n_keyframes=40, n_reanchored=n)
+    for stamp, r in ((1.0, res("LOST", 0)), (1.1, res("LOST", 0)), (4.0, res("OK", 1)),
+                     (4.1, res("OK", 1)), (5.0, res("LOST", 1)), (5.5, res("OK", 1))):
+        node._log_transition(r, stamp)
+    assert lines == [
+        "tracking OK -> LOST at 1.000 (0 points tracked, 40 keyframes, 3 frames skipped while "
+        "busy so far)",
+        "tracking LOST -> OK at 4.000 (160 points tracked, 40 keyframes, 3 frames skipped while "
+        "busy so far, the map started again where the wheel odometry carried the base)",
+        "tracking OK -> LOST at 5.000 (0 points tracked, 40 keyframes, 3 frames skipped while "
+        "busy so far)",
+        "tracking LOST -> OK at 5.500 (160 points tracked, 40 keyframes, 3 frames skipped while "
+        "busy so far)"]
+
+
 def test_each_loop_closure_gets_one_log_line_with_its_checks(monkeypatch):
     """OrbNode._log_loops: one line per loop closed since the last call, with the map and
     odometry checks where they ran; a new map (shorter list) starts the count again."""
@@ -418,20 +447,22 @@ def test_each_loop_closure_gets_one_log_line_with_its_checks(monkeypatch):
     monkeypatch.setattr(pose_node.rospy, "loginfo", lambda fmt, *a: lines.append(fmt % a))
     node = pose_node.OrbNode.__new__(pose_node.OrbNode)
     closed = [dict(kf=576, cand=366, stamp=313.8, moved_m=0.81, turned_deg=2.1, path_m=39.3,
-                   map_check=(120, 131, 6.5), odometry_check=(0.42, 0.95, 38.0)),
+                   map_check=(120, 131, 6.5), odometry_check=(0.42, 0.95, 38.0),
+                   source="proximity", held_ms=2750.0, graph_ms=2400.0, graph_edges=19867),
               dict(kf=590, cand=223, stamp=321.4, moved_m=0.16, turned_deg=1.6, path_m=70.4,
                    map_check=None, odometry_check=None)]
     node.system = types.SimpleNamespace(loop_closing=types.SimpleNamespace(closed=closed[:1]))
     node.n_loops_logged = 0
     node._log_loops()
     node._log_loops()                                   # nothing new: nothing logged
-    assert lines == ["pose_node: loop closed at 313.800: keyframe 576 with keyframe 366, 39.3 m "
-                     "of keyframe path apart; the correction moved it 0.81 m and turned it 2.1 "
-                     "deg; the loop keyframe's points matched 120 -> 131 times, moved 6.5 px; "
-                     "0.42 -> 0.95 m off the wheel odometry over 38.0 m"]
+    assert lines == ["pose_node: loop closed at 313.800 (proximity): keyframe 576 with keyframe "
+                     "366, 39.3 m of keyframe path apart; the correction moved it 0.81 m and "
+                     "turned it 2.1 deg; the loop keyframe's points matched 120 -> 131 times, "
+                     "moved 6.5 px; 0.42 -> 0.95 m off the wheel odometry over 38.0 m; tracking "
+                     "waited 2.75 s for it (pose graph of 19867 edges: 2.40 s)"]
     node.system.loop_closing.closed = closed
     node._log_loops()
-    assert len(lines) == 2 and "keyframe 590 with keyframe 223" in lines[1] and \
+    assert len(lines) == 2 and "(bow): keyframe 590 with keyframe 223" in lines[1] and \
         lines[1].endswith("turned it 1.6 deg")
     node.system.loop_closing.closed = closed[1:]        # a new map's first loop
     node._log_loops()

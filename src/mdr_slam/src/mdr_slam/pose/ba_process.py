@@ -16,18 +16,18 @@ import sys
 import threading
 
 from .frame import stereo_features_job
-from .optimizer import bundle_adjust, bundle_adjust_sparse
+from .optimizer import bundle_adjust, bundle_adjust_sparse, essential_graph_job
 
 __all__ = ["BAWorker", "BA_SOLVERS"]
 
 # what a BAWorker child can solve (ba_worker.py looks the name up here too)
 BA_SOLVERS = {"bundle_adjust": bundle_adjust, "bundle_adjust_sparse": bundle_adjust_sparse,
-              "stereo_features": stereo_features_job}
+              "essential_graph": essential_graph_job, "stereo_features": stereo_features_job}
 
 
 class BAWorker:
     """Solves bundle adjustments in one child process (``python -m mdr_slam.pose.ba_worker``):
-    LocalMapping's local BA (``ba_process``) and LoopClosing's global BA (``global_ba_process``).
+    LocalMapping's local BA (``ba_process``) and LoopClosing's pose graph and global BA.
 
     Measured on this 2-core machine under heavy load (load average 8-10; KITTI clip, a captured
     local BA solved in a loop next to tracking): in a thread the GIL throttles the BA to ~1.2

@@ -3,7 +3,7 @@ side: ba_process.BAWorker).
 
 Protocol on its stdin/stdout: the parent writes pickled ``(name, args, kwargs)``, name a key of
 ``ba_process.BA_SOLVERS`` (``bundle_adjust``: local BA, ``bundle_adjust_sparse``: global BA,
-``stereo_features``: a stereo frame's features); the child answers the pickled result or an
+``essential_graph``: a loop's pose graph, ``stereo_features``: a stereo frame's features); the child answers the pickled result or an
 ``Exception``. SIGUSR1 asks the solve in progress to stop
 after the current iteration (ORB-SLAM2's abort when a new keyframe arrives). It is a plain
 ``python -m`` process, not multiprocessing, so the parent's main script is never re-imported in

@@ -73,7 +73,8 @@ GLOBAL_BA_TOL = 1e-3           # a global BA round ends once a step lowers the c
 GLOBAL_BA_MIN_CORRECTION_M = 0.03    # a global BA follows a loop that moved the keyframe more than
 GLOBAL_BA_MIN_CORRECTION_DEG = 0.5   # this or turned it more than this (RunGlobalBundleAdjustment: always)
 GLOBAL_BA_MIN_KF_POINTS = 20   # keyframes seeing fewer points follow their parent in the global BA
-GLOBAL_BA_PROCESS = True       # threads: the global BA solved in a child process (out of the GIL) ...
+GLOBAL_BA_PROCESS = True       # threads: a loop's pose graph and global BA solved in a child process
+#                                (out of the GIL) ...
 GLOBAL_BA_NICE = 10            # ... at this nice increment (it yields the CPU to tracking)
 # Proximity loops (no ORB-SLAM2 counterpart; ORB-SLAM3 / RTAB-Map style): keyframes near the estimated
 # pose, ranked by phase correlation of their quarter images (112 kB kept per keyframe), verified by LK + PnP
@@ -95,6 +96,13 @@ LOOP_MAP_CHECK = True          # a loop keyframe's neighbourhood must line up wi
 LOOP_MAP_LARGE_RATIO = 2.0     # this x as often with the correction as without it ...
 LOOP_MAP_SMALL_RATIO = 0.9     # ... or this x when the correction moves the projections by at most
 LOOP_MAP_SMALL_PX = 12.0       # this (median px, the search window: both poses find the same points)
+
+LOOP_CONFIRMATIONS = 2         # later keyframes that must see the loop place through the same
+#                                correction before it is closed (ORB-SLAM3 mnLoopNumCoincidences: 3
+#                                keyframes in all) ...
+LOOP_CONFIRM_MATCHES = 30      # ... each matching this many of its points (DetectAndReffineSim3-
+#                                FromLastKF: nProjMatches 30), with the map check's ratio
+LOOP_CONFIRM_MISSES = 2        # keyframes that fail in a row drop the candidate (mnLoopNumNotFound)
 
 LOOP_ODOM_GATE_M = 0.1          # a loop may leave the map this far from the wheel odometry's motion
 LOOP_ODOM_GATE_REL = 0.05       # ... + this x the odometry's path between the two keyframes (m) ...
@@ -205,15 +213,19 @@ class LoopClosing:
         self.min_consistency = LOOP_CONSISTENCY
         self.min_inliers = 20
         self.loops: List[tuple] = []               # accepted (current kf id, loop kf id)
-        # accepted, for the log: dicts of kf, cand (ids), stamp (kf's), moved_m, turned_deg (the
-        # correction at kf), path_m (keyframe path between them), and the checks it passed:
+        # accepted, for the log: dicts of kf, cand (ids), stamp (kf's), source (bow, proximity),
+        # found (the keyframe that found it; kf confirmed it),
+        # moved_m, turned_deg (the correction at kf), path_m (keyframe path between them),
+        # graph_ms, graph_edges, graph_process (the essential graph's solve: in a child process
+        # or not), held_ms (the map lock held for
+        # the keyframe: tracking waits that long in threads), and the checks it passed:
         # map_check (matches uncorrected, corrected, median px moved) and odometry_check (m off
         # the odometry before, after, odometry path m), None where not run
         self.closed: List[dict] = []
         self.global_ba_runs: List[dict] = []       # global_bundle_adjustment summaries (+ ms)
         self.rejected: List[tuple] = []            # (kf, cand, moved m, turned deg, path m)
         self.images: Dict[int, tuple] = {}         # kf id -> (half, quarter) left image (proximity)
-        self.proximity_loops: List[tuple] = []     # accepted by the proximity path (kf, cand, inliers)
+        self.proximity_loops: List[tuple] = []     # closed, found by the proximity path (found kf, cand, inliers)
         self.odom_checks: List[tuple] = []         # (kf, cand, odometry path m, m and deg off it
         #                                            before / after the correction, accepted)
         self.correction_checks: List[tuple] = []   # correction_fits_map (kf, cand, n before, after, px, ok)
@@ -223,7 +235,13 @@ class LoopClosing:
         self.last_correction = (0.0, 0.0)          # (m, deg) of the last verified loop transform
         self._last_path = 0.0                      # m of keyframe path it spans
         self._weak: List[tuple] = []               # (kf id, S) of weak proximity verifications
+        self._graph_job = None                     # correct_loop's essential graph, to solve
         self.ill_conditioned: List[tuple] = []     # refused: (kf, cand, inliers, rot sigma, turn deg)
+        # a verified loop waiting for LOOP_CONFIRMATIONS later keyframes: dict of cand, S,
+        # source, first (kf id), confirmed, missed, n (the verification's inliers)
+        self.pending: Optional[dict] = None
+        self.unconfirmed: List[tuple] = []         # dropped: (first kf, cand, confirmations)
+        self.held_ms: List[float] = []             # per keyframe processed: the map lock held (ms)
 
     # ------------------------------------------------------------------ queue / thread
     def insert_keyframe(self, kf) -> None:
@@ -289,15 +307,20 @@ class LoopClosing:
         closed = False
         self.system.yield_to_tracking()
         bow = self.bow(kf)   # the keyframe's descriptors never change: outside the map lock
+        n_closed = len(self.closed)
         with self.map.lock:
+            t_lock = time.perf_counter()
             if kf.bad:
                 return
             self._exclude = set()
-            cand = self.detect_loop(kf, bow)
-            if cand is not None:
-                closed = self.try_close(kf, cand)
-            if not closed and self._exclude and LOOP_PROXIMITY:
-                closed = self.try_proximity(kf)
+            if self.pending is not None:   # no new detection while a loop awaits confirmation
+                closed = self.confirm_pending(kf)
+            else:
+                cand = self.detect_loop(kf, bow)
+                if cand is not None:
+                    closed = self.try_close(kf, cand)
+                if not closed and self.pending is None and self._exclude and LOOP_PROXIMITY:
+                    closed = self.try_proximity(kf)
             self.db.add(kf.id, bow)
             if kf.id % 20 == 0:   # culled keyframes are no longer candidates (KeyFrame::SetBadFlag
                 # erases them from the database): their images and BoW entries go
@@ -307,8 +330,26 @@ class LoopClosing:
                 for k in [k for k in self.db.bows if k not in self.map.keyframes or
                           self.map.keyframes[k].bad]:
                     self.db.erase(k)
-        if closed and self.cfg.global_ba and self.global_ba_pays():
-            self.run_global_ba()
+            held_ms = 1000.0 * (time.perf_counter() - t_lock)
+            self.held_ms.append(held_ms)
+        if len(self.closed) > n_closed:   # tracking waits on the map lock this long
+            self.closed[-1]["held_ms"] = held_ms
+        if self._graph_job is None and not (closed and self.cfg.global_ba and
+                                            self.global_ba_pays()):
+            return
+        worker = None
+        if self.system.threads and GLOBAL_BA_PROCESS:
+            # one child process per loop for its pose graph and global BA (loops are rare: its
+            # ~60 MB are not kept); in this thread GTSAM and the solver's long numpy/scipy steps
+            # hold the GIL, and tracking and the node's tf stand still meanwhile
+            worker = BAWorker(nice=int(GLOBAL_BA_NICE))
+        try:
+            self.finish_correction(worker)
+            if closed and self.cfg.global_ba and self.global_ba_pays():
+                self.run_global_ba(worker)
+        finally:
+            if worker is not None:
+                worker.close()
 
     def global_ba_pays(self) -> bool:
         """A full BA after a loop only where the loop moved the map by more than
@@ -323,7 +364,7 @@ class LoopClosing:
         self.system.yield_to_tracking()   # per iteration, without the map lock
         return self.stop_flag
 
-    def run_global_ba(self) -> dict:
+    def run_global_ba(self, worker=None) -> dict:
         """Global bundle adjustment after a loop correction (ORB-SLAM2 RunGlobalBundleAdjustment):
         the pose graph spreads the loop error by edge count, the full BA by the information of
         every observation, so segments tracked on few points (blank walls) take the larger share
@@ -331,20 +372,11 @@ class LoopClosing:
         (tracking goes on; keyframes and points made meanwhile follow their ancestors); the
         corrected keyframe poses are reported like the loop correction."""
         t0 = time.perf_counter()
-        worker = None
-        if self.system.threads and GLOBAL_BA_PROCESS:
-            # a child process per global BA (they are rare: its ~60 MB are not kept); in this
-            # thread the solver's long numpy/scipy steps stalled tracking (frames dropped live)
-            worker = BAWorker(nice=int(GLOBAL_BA_NICE))
-        try:
-            res = global_bundle_adjustment(   # the first keyframe holds the map frame (ORB-SLAM2)
-                self.map, iterations=int(GLOBAL_BA_ITERATIONS),
-                min_kf_points=int(GLOBAL_BA_MIN_KF_POINTS), tol=float(GLOBAL_BA_TOL),
-                abort=self._gba_abort if self.system.threads else None,
-                lock_solve=not self.system.threads, worker=worker)
-        finally:
-            if worker is not None:
-                worker.close()
+        res = global_bundle_adjustment(   # the first keyframe holds the map frame (ORB-SLAM2)
+            self.map, iterations=int(GLOBAL_BA_ITERATIONS),
+            min_kf_points=int(GLOBAL_BA_MIN_KF_POINTS), tol=float(GLOBAL_BA_TOL),
+            abort=self._gba_abort if self.system.threads else None,
+            lock_solve=not self.system.threads, worker=worker)
         res["ms"] = 1000.0 * (time.perf_counter() - t0)
         res["process"] = worker is not None and not worker.failed
         self.global_ba_runs.append(res)
@@ -406,10 +438,68 @@ class LoopClosing:
             if not self.plausible_correction(kf, cand, S) or \
                     not self.correction_fits_map(kf, cand, S):
                 continue
-            self.correct_loop(kf, cand, S, cur_ids, loop_ids, new_kp, new_ids)
             self.consistent_groups = []
+            if self._defer(kf, cand, S, "bow"):
+                return False
+            self.correct_loop(kf, cand, S, cur_ids, loop_ids, new_kp, new_ids, source="bow")
             return True
         return False
+
+    def _defer(self, kf, cand, S, source: str, n: int = 0) -> bool:
+        """Keep a verified loop (``n``: its verification's inliers) for confirmation by the next
+        keyframes (True), unless LOOP_CONFIRMATIONS is 0."""
+        if int(LOOP_CONFIRMATIONS) <= 0:
+            return False
+        self.pending = dict(cand=cand, S=S.copy(), source=source, first=kf.id, confirmed=0,
+                            missed=0, n=int(n))
+        return True
+
+    def confirm_pending(self, kf) -> bool:
+        """ORB-SLAM3's loop confirmation (LoopClosing::NewDetectCommonRegions with
+        DetectAndReffineSim3FromLastKF): a keyframe after the one that found the loop is placed
+        by the same correction, and the loop keyframe's neighbourhood projected into it must
+        match at least LOOP_CONFIRM_MATCHES of its keypoints and pass the map check. A place that
+        only looks like the old one from one viewpoint (another bay of a garage) stops matching
+        as the robot moves on. After LOOP_CONFIRMATIONS confirmations the loop is closed with
+        this keyframe; after LOOP_CONFIRM_MISSES failures in a row it is dropped."""
+        p = self.pending
+        cand, S = p["cand"], p["S"]
+        if cand.bad or kf.bad:
+            self.pending = None
+            return False
+        n_checks = len(self.correction_checks)
+        ok = self.correction_fits_map(kf, cand, S)
+        n1 = self.correction_checks[-1][3] if len(self.correction_checks) > n_checks else 0
+        if ok and n1 >= int(LOOP_CONFIRM_MATCHES):
+            p["confirmed"] += 1
+            p["missed"] = 0
+        else:
+            p["missed"] += 1
+            if p["missed"] >= int(LOOP_CONFIRM_MISSES):
+                self.unconfirmed.append((p["first"], cand.id, p["confirmed"]))
+                self.pending = None
+            return False
+        if p["confirmed"] < int(LOOP_CONFIRMATIONS):
+            return False
+        self.pending = None
+        if not self.plausible_correction(kf, cand, S):   # the gates again, for this keyframe
+            self.unconfirmed.append((p["first"], cand.id, p["confirmed"]))
+            return False
+        # guided search with the corrected pose (ComputeSim3's SearchByProjection): the matches
+        # the correction gives this keyframe; SearchAndFuse in correct_loop merges the rest
+        mp = self.map
+        local = [cand] + mp.best_covisibles(cand, 10)
+        pts = np.unique(np.concatenate([k.valid_mp_ids(mp.mp_bad) for k in local]))
+        view = _KeyFrameView(kf, kf.T_cw @ inv_T(S))
+        pts = pts[~np.isin(pts, kf.mp_ids)]
+        self.matcher.search_local_points(view, mp, pts, th=3.0)
+        new_kp = np.nonzero(view.mp_ids >= 0)[0]
+        empty = np.zeros(0, np.int64)
+        if p["source"] == "proximity":
+            self.proximity_loops.append((p["first"], cand.id, p["n"]))
+        self.correct_loop(kf, cand, S, empty, empty, new_kp, view.mp_ids[new_kp],
+                          n_match=max(int(n1), len(new_kp)), source=p["source"], found=p["first"])
+        return True
 
     # ------------------------------------------------------------------ proximity loops
     def proximity_candidates(self, kf) -> List[tuple]:
@@ -574,10 +664,12 @@ class LoopClosing:
             pts = pts[~np.isin(pts, kf.mp_ids)]
             self.matcher.search_local_points(view, mp, pts, th=3.0)
             new_kp = np.nonzero(view.mp_ids >= 0)[0]
-            self.correct_loop(kf, cand, S, cur_ids, loop_ids, new_kp, view.mp_ids[new_kp],
-                              n_match=n_inl)
-            self.proximity_loops.append((kf.id, cand.id, n_inl))
             self.consistent_groups = []
+            if self._defer(kf, cand, S, "proximity", n_inl):
+                return False
+            self.proximity_loops.append((kf.id, cand.id, n_inl))
+            self.correct_loop(kf, cand, S, cur_ids, loop_ids, new_kp, view.mp_ids[new_kp],
+                              n_match=n_inl, source="proximity")
             return True
         return False
 
@@ -756,7 +848,8 @@ class LoopClosing:
         return normalize_pose(inv_T(T_cw) @ kf.T_cw)
 
     def correct_loop(self, kf, cand, S, cur_ids, loop_ids, new_kp, new_ids,
-                     n_match: Optional[int] = None) -> None:
+                     n_match: Optional[int] = None, source: str = "bow",
+                     found: Optional[int] = None) -> None:
         mp = self.map
         group = [kf] + [mp.keyframes[k] for k in kf.connections
                         if k in mp.keyframes and not mp.keyframes[k].bad]
@@ -822,7 +915,6 @@ class LoopClosing:
             if a_ in poses and b_ in poses:
                 edges.append((a_, b_, inv_T(poses[a_]) @ poses[b_],
                               wt(mp.keyframes[a_].connections.get(b_, 15))))
-        new = Optimizer.optimize_essential_graph(poses, edges, fixed=cand.id)
         # map points follow their reference keyframe: P' = T_new T_used^-1 P
         owner = np.full(mp.n, -1, dtype=np.int64)
         for k in group:   # points moved by S follow a group keyframe (ORB-SLAM2 mnCorrectedByKF)
@@ -836,25 +928,77 @@ class LoopClosing:
             ids = k.valid_mp_ids(mp.mp_bad)
             free = owner[ids] < 0
             owner[ids[free]] = k.id
-        alive = np.nonzero(owner >= 0)[0]
-        for kid in np.unique(owner[alive]).tolist():
-            sel = alive[owner[alive] == kid]
-            C = new[kid] @ inv_T(poses[kid])
-            mp.mp_pos[sel] = mp.mp_pos[sel] @ C[:3, :3].T + C[:3, 3]
-        for kid, T in new.items():
-            mp.keyframes[kid].set_pose(normalize_pose(inv_T(T)))
-        mp.update_normal_and_depth(alive)
         mp.n_loop_closures += 1
         self.last_loop_kf_id = kf.id
         self.loops.append((kf.id, cand.id))
         mc = [c for c in self.correction_checks if c[:2] == (kf.id, cand.id)]
         oc = [c for c in self.odom_checks if c[:2] == (kf.id, cand.id)]
         self.closed.append(dict(
-            kf=kf.id, cand=cand.id, stamp=float(kf.stamp), moved_m=float(self.last_correction[0]),
+            kf=kf.id, cand=cand.id, stamp=float(kf.stamp), source=source,
+            found=kf.id if found is None else int(found),
+            graph_ms=None, graph_edges=len(edges), graph_process=False, held_ms=None,
+            moved_m=float(self.last_correction[0]),
             turned_deg=float(self.last_correction[1]), path_m=float(self._last_path),
             map_check=(mc[-1][2], mc[-1][3], mc[-1][4]) if mc else None,
             odometry_check=(oc[-1][3], oc[-1][4], oc[-1][2]) if oc else None))
-        self.corrections.append(("loop_closure", {k: mp.keyframes[k].T_cw.copy() for k in new}))
+        self._graph_job = (poses, edges, cand.id, owner)
+        if not self.system.threads:   # the caller holds the map lock: solve and apply now
+            self.finish_correction(None)
+
+    def finish_correction(self, worker) -> None:
+        """The essential graph of the last correct_loop solved (in ``worker``'s child process when
+        given: GTSAM keeps the GIL while it solves: 2.4 s for a graph of 700 keyframes) and
+        applied. Called without the map lock in threaded mode, so tracking goes on meanwhile
+        (ORB-SLAM2 stops it); the solution is then applied as a correction C = T_new T_used^-1
+        of each keyframe's current pose and of its points, so a local BA or a keyframe made
+        meanwhile is kept (new keyframes follow their nearest corrected ancestor, new points
+        their reference keyframe, as after a global BA)."""
+        job, self._graph_job = self._graph_job, None
+        if job is None:
+            return
+        poses, edges, fixed, owner = job
+        t_graph = time.perf_counter()
+        if worker is not None:
+            new = worker.run((poses, edges, fixed), {}, solver="essential_graph")
+        else:
+            new = Optimizer.optimize_essential_graph(poses, edges, fixed=fixed)
+        self.closed[-1]["graph_ms"] = 1000.0 * (time.perf_counter() - t_graph)
+        self.closed[-1]["graph_process"] = worker is not None and not worker.failed
+        mp = self.map
+        with mp.lock:
+            C = {kid: new[kid] @ inv_T(poses[kid]) for kid in new}
+            for k in sorted(mp.good_keyframes(), key=lambda k: k.id):
+                if k.id in C:
+                    continue
+                a = k.parent
+                while a is not None and a.id not in C:
+                    a = a.parent
+                if a is not None:
+                    C[k.id] = C[a.id]
+            n = mp.n
+            if len(owner) < n:   # points made meanwhile follow their reference keyframe
+                owner = np.concatenate([owner, mp.mp_ref_kf[len(owner):n]])
+            owner = owner[:n].copy()
+            owner[mp.mp_bad[:n]] = -1
+            alive = np.nonzero(owner >= 0)[0]
+            moved = []
+            for kid in np.unique(owner[alive]).tolist():
+                if kid not in C:
+                    continue
+                sel = alive[owner[alive] == kid]
+                Ck = C[kid]
+                mp.mp_pos[sel] = mp.mp_pos[sel] @ Ck[:3, :3].T + Ck[:3, 3]
+                moved.append(sel)
+            done = []
+            for kid, Ck in C.items():
+                k = mp.keyframes.get(kid)
+                if k is not None and not k.bad:
+                    k.set_pose(normalize_pose(inv_T(Ck @ k.T_wc)))
+                    done.append(kid)
+            if moved:
+                mp.update_normal_and_depth(np.concatenate(moved))
+            self.corrections.append(("loop_closure", {k: mp.keyframes[k].T_cw.copy()
+                                                      for k in done}))
 
 
 def bow_score_safe(a, b) -> float:

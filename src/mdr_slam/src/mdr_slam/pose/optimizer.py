@@ -731,6 +731,12 @@ class Optimizer:
         return {k: result.atPose3(X(k)).matrix() for k in poses_wc}
 
 
+def essential_graph_job(poses_wc, edges, fixed: int, iterations: int = 20, abort=None):
+    """:meth:`Optimizer.optimize_essential_graph` as a BAWorker child's job (``abort`` unused:
+    GTSAM's optimizer runs to the end)."""
+    return Optimizer.optimize_essential_graph(poses_wc, edges, fixed, iterations=iterations)
+
+
 # ---------------------------------------------------------------------- global bundle adjustment
 def bundle_adjust_sparse(Ts: np.ndarray, fixed: np.ndarray, P: np.ndarray, cam_idx: np.ndarray,
                          pt_idx: np.ndarray, obs: np.ndarray, stereo: np.ndarray,
