@@ -315,10 +315,10 @@ def test_a_tracked_step_the_wheel_odometry_contradicts_is_refused():
     assert t.n_odom_step_refused == n
 
 
-def _track_with_odometry(poses, blank, dt=0.05):
-    """Track the orbit ``poses`` (``dt`` s apart) in the textured room with planar_motion auto
-    and wheel odometry (translations read 2 % long), the images of frames ``i`` with
-    ``blank(i)`` blank; returns the (shut down) System and its results."""
+def _track_with_odometry(poses, blank):
+    """Track the orbit ``poses`` in the textured room with planar_motion auto and wheel odometry
+    (translations read 2 % long), the images of frames ``i`` with ``blank(i)`` blank; returns the
+    (shut down) System and its results."""
     room = BoxRoom((3.0, 1.5, 3.0), tex_size=768, seed=3)
     s = System(CAM, config={"planar_motion": "auto"}, threads=False, T_map_cam0=T_BASE_CAM_LEVEL)
     res = []
@@ -326,7 +326,7 @@ def _track_with_odometry(poses, blank, dt=0.05):
         l, r = room.render_stereo(T_wc, CAM)
         if blank(i):
             l, r = np.full_like(l, 128), np.full_like(r, 128)
-        f = s.make_frame(dt * i, l, r)
+        f = s.make_frame(0.05 * i, l, r)
         T = inv_T(poses[0]) @ T_wc
         T[:3, 3] *= 1.02
         f.T_odom_cam = T_BASE_CAM_LEVEL @ T
@@ -368,28 +368,3 @@ def test_a_map_reset_starts_where_the_wheel_odometry_carried_the_base():
         err_deg = np.degrees(Rotation.from_matrix(truth[:3, :3].T @ r.T_map_cam[:3, :3]).magnitude())
         assert np.linalg.norm(r.T_map_cam[:3, 3] - truth[:3, 3]) < 0.03 and err_deg < 1.0, \
             (r.stamp, r.T_map_cam[:3, 3], truth[:3, 3], err_deg)
-
-
-def test_a_long_lost_stretch_ends_where_the_wheel_odometry_carried_the_base():
-    """Tracked, then blank images for 2.4 s while the base turns on by 108 deg onto walls the
-    map has not seen: relocalization cannot come back, so the first textured frame starts the
-    map again where the odometry carried the base (Tracking.reanchor) and the frames after it
-    are tracked, to within the odometry's error; without it they stay LOST."""
-    from test_pose import tuned
-    from mdr_slam.pose import tracking
-    poses = orbit_trajectory(40, radius=1.0, arc=2.0 * np.pi)[:30]
-    blank = lambda i: 12 <= i < 24   # noqa: E731
-    runs = {}
-    for on in (True, False):
-        with tuned(tracking, REANCHOR_AFTER_S=2.0 if on else 1e9):
-            runs[on] = _track_with_odometry(poses, blank, dt=0.2)
-    s, res = runs[True]
-    assert [r.state for r in res[:12]].count("OK") == 12
-    assert s.tracking.n_reanchored == 1, [r.state for r in res]
-    assert all(r.T_map_cam is not None for r in res[24:]), [r.state for r in res]
-    for r, T_wc in zip(res[24:], poses[24:]):
-        truth = T_BASE_CAM_LEVEL @ inv_T(poses[0]) @ T_wc
-        assert np.linalg.norm(r.T_map_cam[:3, 3] - truth[:3, 3]) < 0.05, r.stamp
-    off, res_off = runs[False]
-    assert off.tracking.n_reanchored == 0
-    assert all(r.T_map_cam is None for r in res_off[24:]), [r.state for r in res_off]

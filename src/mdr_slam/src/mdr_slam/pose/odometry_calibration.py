@@ -186,12 +186,6 @@ class OdometryCalibration:
             return None
         return self._last_ok[3] @ inv_T(self._last_ok[2]) @ self._chain
 
-    def coasted_at(self, stamp: float) -> Optional[np.ndarray]:
-        """:meth:`coasted`, or None unless the last :meth:`correct` was for ``stamp``."""
-        if self._raw is None or abs(self._raw[0] - float(stamp)) > 1e-9:
-            return None
-        return self.coasted()
-
     def errors(self) -> Tuple[float, float, float, float]:
         """(scale, rot_scale, drift in deg per metre, metres of tracked driving fitted on)."""
         return (self.scale, self.rot_scale, math.degrees(self.drift), self.travel)

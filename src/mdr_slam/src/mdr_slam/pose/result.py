@@ -25,7 +25,6 @@ class TrackResult:
     n_loop_closures: int = 0
     n_visual_odometry: int = 0                 # frames so far tracked frame to frame (map behind)
     n_odom_refused: int = 0                    # poses so far refused: the wheel odometry contradicted them
-    n_reanchored: int = 0                      # LOST stretches so far ended at the odometry's pose
     odom_refusal: Optional[Tuple[float, float, float, int]] = None   # this frame's: m, deg off the
     #                                  odometry's prediction, m travelled since the last tracked frame, points
     track_ms: float = 0.0                      # tracking alone (time_ms adds sync-mode mapping)

@@ -27,7 +27,6 @@ from .local_mapping import LocalMapping
 from .loop_closing import LoopClosing
 from .map import Map
 from .odometry_calibration import OdometryCalibration
-from .optimizer import normalize_pose
 from .orb import ORBextractor
 from .planar import PlanarMotion
 from .result import TrackResult
@@ -188,17 +187,6 @@ class System:
         frame.build_cpu_ms = 1000.0 * (time.thread_time() - c0)   # the right image's thread excluded
         return frame
 
-    def coasted_T_cw(self, stamp: float) -> Optional[np.ndarray]:
-        """The camera pose (world frame) where the corrected wheel odometry has carried the robot
-        since the last tracked frame, for a frame at ``stamp``; None without odometry, before
-        its calibration has a tracked frame, or when the odometry was not given for ``stamp``."""
-        if not ODOMETRY_CALIBRATION or self.T_base_cam is None:
-            return None
-        T = self.odometry_calibration.coasted_at(stamp)
-        if T is None:
-            return None
-        return normalize_pose(inv_T(T @ self.T_base_cam) @ self.T_map_world)
-
     def track(self, stamp: float, left_rect: Optional[np.ndarray] = None,
               right_rect: Optional[np.ndarray] = None, frame: Optional[Frame] = None) -> TrackResult:
         """Track one stereo pair (rectified images) or a Frame already made by ``make_frame``."""
@@ -283,7 +271,6 @@ class System:
             n_loop_closures=self.map.n_loop_closures,
             n_visual_odometry=self.tracking.n_visual_odometry,
             n_odom_refused=self.tracking.n_odom_refused,
-            n_reanchored=self.tracking.n_reanchored,
             odom_refusal=_refusal_at(self.tracking.last_odom_refusal, stamp),
             track_ms=t_track, track_cpu_ms=c_track,
             lock_wait_ms=self.tracking.lock_wait_ms, frame_ms=t_frame)

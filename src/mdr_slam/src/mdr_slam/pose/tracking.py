@@ -69,8 +69,6 @@ ODOMETRY_WINDOW_M = 0.10       # ... may differ from the wheel odometry's by thi
 ODOMETRY_WINDOW_REL = 0.10     # path (m) and by DEG + DEG_PER_M x that path, else the frame is refused
 ODOMETRY_WINDOW_DEG = 5.0      # (and coasts on the odometry): on weak texture a tracker that follows a
 ODOMETRY_WINDOW_DEG_PER_M = 2.0  # wrongly mapped patch drifts smoothly, under the per-frame gate
-REANCHOR_AFTER_S = 2.0         # LOST this long with wheel odometry: a frame with REANCHOR_MIN_POINTS
-REANCHOR_MIN_POINTS = 150      # stereo points starts the map again at the odometry's pose
 ODOMETRY_COAST_S = 10.0        # ... and this long when the robot's odometry gives the motion (a blank
                                # wall through a turn in place: odometry drifts ~1-2 % over it)
 MOTION_PRIOR_ACC = 4.0         # pose-only optimization pulled toward the constant-velocity prediction with
@@ -151,7 +149,6 @@ class Tracking:
         self.n_odom_refused = 0                        # poses (tracked, relocalized) the odometry contradicted
         self.last_odom_refusal = None                  # (stamp, m, deg, m travelled, points) of the last
         self.n_visual_odometry = 0                     # frames the map did not cover (track_visual_odometry)
-        self.n_reanchored = 0                          # LOST frames that restarted the map at the odometry (reanchor)
         # (stamp, ref kf, T_c_ref, T_odom_cam) of the frames tracked OK lately (planar motion)
         self.odom_window: List[tuple] = []
         self.n_odom_window_refused = 0                 # of those, by odometry_window_agrees
@@ -228,23 +225,16 @@ class Tracking:
                 frame.ref_kf = self.ref_kf
                 if ok:
                     ok = self.track_local_map(frame)
-            reanchored = False
-            if self.state == LOST and not ok and not self.system.localization:
-                ok = reanchored = self.reanchor(frame)
-                self.n_reanchored += int(reanchored)
             if ok:
                 self.state = RELOCALIZED if relocalized else OK
-                if reanchored:   # seconds since the last tracked frame: no velocity from it
-                    self.velocity = None
-                elif self.last_frame is not None and self.last_frame.T_cw is not None:
+                if self.last_frame is not None and self.last_frame.T_cw is not None:
                     self.velocity = normalize_pose(frame.T_cw @ inv_T(self.last_frame.T_cw))
                     self.velocity_dt = frame.stamp - self.last_frame.stamp
                 # drop outliers before the keyframe decision (ORB-SLAM2 end of Track)
                 frame.mp_ids[frame.outlier] = -1
                 frame.outlier[:] = False
-                if vo or reanchored or (not self.system.localization and
-                                        self.need_new_keyframe(frame)):
-                    kf = self.create_new_keyframe(frame, all_stereo=vo or reanchored)
+                if vo or (not self.system.localization and self.need_new_keyframe(frame)):
+                    kf = self.create_new_keyframe(frame, all_stereo=vo)
                     self.n_keyframes_created += 1
                     out.update(is_keyframe=True, keyframe_id=kf.id)
             else:
@@ -462,31 +452,6 @@ class Tracking:
         if self.odometry_motion(frame) is not None:
             return frame.stamp - last.stamp <= float(ODOMETRY_COAST_S)
         return self.velocity is not None and frame.stamp - last.stamp <= float(LOST_COAST_S)
-
-    def reanchor(self, frame: Frame) -> bool:
-        """LOST for REANCHOR_AFTER_S with a wheeled base's odometry, past what relocalization
-        and the recoveries from the last tracked frame can reach (a blank stretch of wall, then a
-        part of the floor the map has not seen): a frame with REANCHOR_MIN_POINTS stereo points
-        is placed where the corrected odometry has carried the robot (System.coasted_T_cw) and
-        becomes a keyframe of all its stereo points, as StereoInitialization does, linked to the
-        map by the spanning tree only. Tracking and mapping go on there with the odometry's
-        error at that moment instead of stopping until the robot returns to a mapped view; a
-        later loop closure joins the two. ORB-SLAM3 starts a new map of its Atlas there, and
-        RTAB-Map's odometry restarts at the wheel odometry's guess (Odom/ResetCountdown)."""
-        last = self.last_frame
-        if last is None or frame.stamp - last.stamp < float(REANCHOR_AFTER_S) or \
-                int(np.count_nonzero(frame.depth > 0)) < int(REANCHOR_MIN_POINTS):
-            return False
-        coasted = getattr(self.system, "coasted_T_cw", None)
-        T_cw = None if coasted is None else coasted(frame.stamp)
-        if T_cw is None:
-            return False
-        frame.set_pose(T_cw)
-        frame.mp_ids[:] = -1
-        frame.outlier[:] = False
-        frame.ref_kf = self.ref_kf
-        self.n_matches_inliers = 0
-        return True
 
     def low_texture(self, frame: Frame) -> bool:
         """Few stereo keypoints (blank walls): thresholds written for 1000+ features relax."""
