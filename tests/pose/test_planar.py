@@ -188,6 +188,32 @@ def test_a_loop_the_wheel_odometry_contradicts_is_refused():
     assert check(stub, cur, cand, shift(3.0))
 
 
+def test_a_loop_is_checked_against_the_calibrated_odometry():
+    """The raw odometry's yaw creep has put the current keyframe, 30 m on, 3 m to the side of
+    where the map (right) has it; its calibrated chain agrees with the map. A look-alike loop
+    that moves the keyframe 6 m brings it nearer the raw odometry's place (3 m off, before and
+    after) and would pass on the raw odometry; against the calibrated one it goes from 0 to 6 m
+    off and is refused. The loop that undoes a drifted map's 0.5 m passes either way."""
+    def kf(i, T_wc, T_odom_cam, T_cal):
+        return SimpleNamespace(id=i, T_cw=inv_T(T_wc), T_odom_cam=T_odom_cam,
+                               T_odom_cam_calibrated=T_cal, bad=False)
+    at = lambda x, z: make_T(np.eye(3), [x, 0.0, z])   # noqa: E731
+    cand = kf(0, np.eye(4), np.eye(4), np.eye(4))
+    cur = kf(1, at(0.0, 30.0), at(3.0, 30.0), at(0.0, 30.0))
+    stub = SimpleNamespace(map=SimpleNamespace(keyframes={0: cand, 1: cur}), odom_checks=[])
+    stub._odometry_path = lambda a, b: 30.0
+    check = LoopClosing.odometry_agrees
+    look_alike = at(6.0, 0.0)                            # S moves the keyframe 6 m along x
+    assert not check(stub, cur, cand, look_alike)
+    _, _, _, e0, e1, _, _, ok = stub.odom_checks[-1]
+    assert (e0, e1, ok) == (pytest.approx(0.0), pytest.approx(6.0), False)
+    raw = SimpleNamespace(**{**vars(cur), "T_odom_cam_calibrated": None})
+    stub.map.keyframes[1] = raw
+    assert check(stub, raw, cand, look_alike)            # 3 m off before and after: "no worse"
+    cur.T_cw = inv_T(at(0.5, 30.0))                      # the map drifted 0.5 m
+    assert check(stub, cur, cand, at(-0.5, 0.0))
+
+
 def test_odometry_edge_jacobians_match_finite_differences():
     """The relative-pose residual's Jacobians (left updates of both poses) against central
     differences."""
@@ -340,8 +366,11 @@ def test_lost_frames_carry_the_pose_on_by_the_wheel_odometry():
     but the last tracked one carried on by the odometry (T_map_cam_coasted), where the base truly
     is to within the odometry's 2 % error."""
     poses = orbit_trajectory(28, radius=1.0, arc=np.pi / 2)
-    _, res = _track_with_odometry(poses, lambda i: i >= 22)
+    s, res = _track_with_odometry(poses, lambda i: i >= 22)
     assert [r.state for r in res[:22]].count("OK") == 22
+    # the keyframes keep the calibrated chain's pose too (the loop check compares against it)
+    assert all(k.T_odom_cam_calibrated is not None and k.T_odom_cam is not None
+               for k in s.map.keyframes.values())
     assert [r.state for r in res[24:]] == ["LOST"] * 4, [r.state for r in res]
     for r, T_wc in zip(res[24:], poses[24:]):
         assert r.T_map_cam is None and r.T_map_cam_coasted is not None

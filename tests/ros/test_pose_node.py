@@ -409,35 +409,6 @@ def test_reset_keeps_the_sparse_map(rospy_client, start_process, tmp_path):
     assert folder_sessions(str(maps / "last.1")) == {"pose": "S"}
 
 
-def test_a_lost_stretch_restarted_at_the_odometry_says_so_in_its_log_line(monkeypatch):
-    """OrbNode._log_transition: a line per change of state only, and the LOST -> OK that
-    restarted the map at the wheel odometry's pose (n_reanchored went up) tells it."""
-    import types
-    from mdr_slam.nodes import pose_node
-    lines = []
-    monkeypatch.setattr(pose_node.rospy, "loginfo", lambda fmt, *a: lines.append(fmt % a))
-    monkeypatch.setattr(pose_node.rospy, "logwarn", lambda fmt, *a: lines.append(fmt % a))
-    node = pose_node.OrbNode.__new__(pose_node.OrbNode)
-    node.last_state, node.n_reanchored_logged = "OK", 0
-    node.relay = types.SimpleNamespace(warn=types.SimpleNamespace(counts={"busy": 3}))
-
-    def res(state, n):
-        return types.SimpleNamespace(state=state, n_tracked=0 if state == "LOST" else 160,
-                                     n_keyframes=40, n_reanchored=n)
-    for stamp, r in ((1.0, res("LOST", 0)), (1.1, res("LOST", 0)), (4.0, res("OK", 1)),
-                     (4.1, res("OK", 1)), (5.0, res("LOST", 1)), (5.5, res("OK", 1))):
-        node._log_transition(r, stamp)
-    assert lines == [
-        "tracking OK -> LOST at 1.000 (0 points tracked, 40 keyframes, 3 frames skipped while "
-        "busy so far)",
-        "tracking LOST -> OK at 4.000 (160 points tracked, 40 keyframes, 3 frames skipped while "
-        "busy so far, the map started again where the wheel odometry carried the base)",
-        "tracking OK -> LOST at 5.000 (0 points tracked, 40 keyframes, 3 frames skipped while "
-        "busy so far)",
-        "tracking LOST -> OK at 5.500 (160 points tracked, 40 keyframes, 3 frames skipped while "
-        "busy so far)"]
-
-
 def test_each_loop_closure_gets_one_log_line_with_its_checks(monkeypatch):
     """OrbNode._log_loops: one line per loop closed since the last call, with the map and
     odometry checks where they ran; a new map (shorter list) starts the count again."""

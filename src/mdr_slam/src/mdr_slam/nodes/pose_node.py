@@ -213,7 +213,6 @@ class PoseRelay:
         self.tracking = {"state": "GROUNDTRUTH" if self.p.source == "groundtruth"
                          else "NOT_INITIALIZED", "time_ms": float("nan"), "lost": 0,
                          "keyframes": 0, "loop_closures": 0, "visual_odometry": 0, "odom_refused": 0,
-                         "reanchored": 0,
                          "last_ok": None}
         self.sparse_map_points = None      # OrbNode: () -> points of its sparse map, or None
         self._sparse_last = None
@@ -239,7 +238,6 @@ class PoseRelay:
         t["keyframes"], t["loop_closures"] = int(res.n_keyframes), int(res.n_loop_closures)
         t["visual_odometry"] = int(getattr(res, "n_visual_odometry", 0))
         t["odom_refused"] = int(getattr(res, "n_odom_refused", 0))
-        t["reanchored"] = int(getattr(res, "n_reanchored", 0))
         refusal = getattr(res, "odom_refusal", None)
         if refusal is not None:
             self.warn("odomrefused", "pose_node: a pose %.2f m / %.0f deg from where the wheel "
@@ -297,7 +295,6 @@ class PoseRelay:
         # tracked frame to frame where the map did not cover the view (fast turns, mapping behind)
         stat.add("frames_visual_odometry", str(t["visual_odometry"]))
         stat.add("poses_refused_by_odometry", str(t["odom_refused"]))
-        stat.add("lost_stretches_restarted_at_odometry", str(t["reanchored"]))
         stat.add("last_tracked_s_ago", "%.2f" % ((rospy.Time.now() - t["last_ok"]).to_sec()
                                                   if t["last_ok"] is not None else float("nan")))
         if t.get("odometry_errors") is not None:   # the wheel odometry's fitted errors
@@ -570,7 +567,6 @@ class OrbNode(PoseMapServices):
         self.last_stamp = None
         self.last_state = "NOT_INITIALIZED"
         self.n_loops_logged = 0                # loop closures the log has told of
-        self.n_reanchored_logged = 0           # re-anchored LOST stretches the log has told of
         self.camera_frame_id = None
         # tracking starts before base -> camera is in tf: its results wait here (at most the
         # wait's frames), in a system whose world is the first camera until it is anchored
@@ -851,20 +847,14 @@ class OrbNode(PoseMapServices):
             self.relay.coast(stamp, res.T_map_cam_coasted)
 
     def _log_transition(self, res, stamp: float) -> None:
-        """One line per change of the tracking state (at most a few per run); a LOST stretch
-        ended by starting the map again at the wheel odometry's pose says so."""
+        """One line per change of the tracking state: at most a few per run."""
         if res.state == self.last_state:
             return
         log = rospy.logwarn if res.state == "LOST" else rospy.loginfo
-        how = ""
-        reanchored = int(getattr(res, "n_reanchored", 0))
-        if reanchored > self.n_reanchored_logged:
-            how = ", the map started again where the wheel odometry carried the base"
         log("tracking %s -> %s at %.3f (%d points tracked, %d keyframes, %d frames skipped "
-            "while busy so far%s)", self.last_state, res.state, stamp, res.n_tracked,
-            res.n_keyframes, self.relay.warn.counts.get("busy", 0), how)
+            "while busy so far)", self.last_state, res.state, stamp, res.n_tracked,
+            res.n_keyframes, self.relay.warn.counts.get("busy", 0))
         self.last_state = res.state
-        self.n_reanchored_logged = reanchored
 
     def _log_loops(self):
         """One line per loop closure (ORB-SLAM2 prints "Loop detected!"): which keyframes and how

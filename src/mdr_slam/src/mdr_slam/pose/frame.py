@@ -328,6 +328,8 @@ class Frame:
         # the camera in the robot's odometry frame at this stamp (wheel odometry), when known:
         # the motion between two frames then comes from it instead of a constant velocity
         self.T_odom_cam: Optional[np.ndarray] = None
+        # ... and with the odometry's fitted errors taken out (System: OdometryCalibration)
+        self.T_odom_cam_calibrated: Optional[np.ndarray] = None
         self.ref_kf = None
         self._grid = None
         self.build_ms = self.build_cpu_ms = 0.0   # wall and CPU time of making it (System.make_frame)

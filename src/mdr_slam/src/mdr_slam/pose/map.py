@@ -55,6 +55,9 @@ class KeyFrame:
         # a loop correction is checked against it (LoopClosing.odometry_agrees)
         T_odom_cam = getattr(frame, "T_odom_cam", None)
         self.T_odom_cam = None if T_odom_cam is None else np.array(T_odom_cam, float)
+        # ... and the same with its fitted errors taken out (OdometryCalibration's chain), or None
+        T_cal = getattr(frame, "T_odom_cam_calibrated", None)
+        self.T_odom_cam_calibrated = None if T_cal is None else np.array(T_cal, float)
         self.planar = None                            # PlanarMotion (Map.new_keyframe) or None
         self.bad = False
         self.parent: Optional["KeyFrame"] = None      # spanning tree (highest covisibility)
