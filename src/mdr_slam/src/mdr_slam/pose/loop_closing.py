@@ -485,19 +485,12 @@ class LoopClosing:
         if not self.plausible_correction(kf, cand, S):   # the gates again, for this keyframe
             self.unconfirmed.append((p["first"], cand.id, p["confirmed"]))
             return False
-        # guided search with the corrected pose (ComputeSim3's SearchByProjection): the matches
-        # the correction gives this keyframe; SearchAndFuse in correct_loop merges the rest
-        mp = self.map
-        local = [cand] + mp.best_covisibles(cand, 10)
-        pts = np.unique(np.concatenate([k.valid_mp_ids(mp.mp_bad) for k in local]))
-        view = _KeyFrameView(kf, kf.T_cw @ inv_T(S))
-        pts = pts[~np.isin(pts, kf.mp_ids)]
-        self.matcher.search_local_points(view, mp, pts, th=3.0)
-        new_kp = np.nonzero(view.mp_ids >= 0)[0]
+        # SearchAndFuse in correct_loop merges what the guided search leaves
+        new_kp, new_ids = self.guided_matches(kf, cand, S)
         empty = np.zeros(0, np.int64)
         if p["source"] == "proximity":
             self.proximity_loops.append((p["first"], cand.id, p["n"]))
-        self.correct_loop(kf, cand, S, empty, empty, new_kp, view.mp_ids[new_kp],
+        self.correct_loop(kf, cand, S, empty, empty, new_kp, new_ids,
                           n_match=max(int(n1), len(new_kp)), source=p["source"], found=p["first"])
         return True
 
@@ -657,21 +650,28 @@ class LoopClosing:
             cur_ids, loop_ids = cur[pair], loop[pair]
             pair = ~mp.mp_bad[cur_ids] & ~mp.mp_bad[loop_ids] & (cur_ids != loop_ids)
             cur_ids, loop_ids = cur_ids[pair], loop_ids[pair]
-            # guided search with the corrected pose, as the BoW path does
-            local = [cand] + mp.best_covisibles(cand, 10)
-            pts = np.unique(np.concatenate([k.valid_mp_ids(mp.mp_bad) for k in local]))
-            view = _KeyFrameView(kf, kf.T_cw @ inv_T(S))
-            pts = pts[~np.isin(pts, kf.mp_ids)]
-            self.matcher.search_local_points(view, mp, pts, th=3.0)
-            new_kp = np.nonzero(view.mp_ids >= 0)[0]
             self.consistent_groups = []
             if self._defer(kf, cand, S, "proximity", n_inl):
                 return False
+            new_kp, new_ids = self.guided_matches(kf, cand, S)   # as the BoW path does
             self.proximity_loops.append((kf.id, cand.id, n_inl))
-            self.correct_loop(kf, cand, S, cur_ids, loop_ids, new_kp, view.mp_ids[new_kp],
+            self.correct_loop(kf, cand, S, cur_ids, loop_ids, new_kp, new_ids,
                               n_match=n_inl, source="proximity")
             return True
         return False
+
+    def guided_matches(self, kf, cand, S):
+        """Guided search with the corrected pose (ComputeSim3's SearchByProjection): the loop
+        keyframe's neighbourhood projected into ``kf`` seen through ``S``; returns (keypoint
+        indices of kf, map point ids) it matched."""
+        mp = self.map
+        local = [cand] + mp.best_covisibles(cand, 10)
+        pts = np.unique(np.concatenate([k.valid_mp_ids(mp.mp_bad) for k in local]))
+        view = _KeyFrameView(kf, kf.T_cw @ inv_T(S))
+        pts = pts[~np.isin(pts, kf.mp_ids)]
+        self.matcher.search_local_points(view, mp, pts, th=3.0)
+        new_kp = np.nonzero(view.mp_ids >= 0)[0]
+        return new_kp, view.mp_ids[new_kp]
 
     def plausible_correction(self, kf, cand, S) -> bool:
         """Drift gate against false loops in repetitive or symmetric places (garage seed 4: two
