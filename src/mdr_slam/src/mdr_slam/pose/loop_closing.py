@@ -214,18 +214,17 @@ class LoopClosing:
         self.min_inliers = 20
         self.loops: List[tuple] = []               # accepted (current kf id, loop kf id)
         # accepted, for the log: dicts of kf, cand (ids), stamp (kf's), source (bow, proximity),
-        # found (the keyframe that found it; kf confirmed it),
-        # moved_m, turned_deg (the correction at kf), path_m (keyframe path between them),
-        # graph_ms, graph_edges, graph_process (the essential graph's solve: in a child process
-        # or not), held_ms (the map lock held for
-        # the keyframe: tracking waits that long in threads), and the checks it passed:
+        # found (the keyframe that found it; kf confirmed it), moved_m, turned_deg (the
+        # correction at kf), path_m (keyframe path between them), graph_ms, graph_edges,
+        # graph_process (the essential graph's solve, in a child process or not), held_ms (the
+        # map lock held for the keyframe: tracking waits that long), and the checks it passed:
         # map_check (matches uncorrected, corrected, median px moved) and odometry_check (m off
         # the odometry before, after, odometry path m), None where not run
         self.closed: List[dict] = []
         self.global_ba_runs: List[dict] = []       # global_bundle_adjustment summaries (+ ms)
         self.rejected: List[tuple] = []            # (kf, cand, moved m, turned deg, path m)
         self.images: Dict[int, tuple] = {}         # kf id -> (half, quarter) left image (proximity)
-        self.proximity_loops: List[tuple] = []     # closed, found by the proximity path (found kf, cand, inliers)
+        self.proximity_loops: List[tuple] = []     # closed, found by proximity (found kf, cand, inliers)
         self.odom_checks: List[tuple] = []         # (kf, cand, odometry path m, m and deg off it
         #                                            before / after the correction, accepted)
         self.correction_checks: List[tuple] = []   # correction_fits_map (kf, cand, n before, after, px, ok)
@@ -334,8 +333,8 @@ class LoopClosing:
             self.held_ms.append(held_ms)
         if len(self.closed) > n_closed:   # tracking waits on the map lock this long
             self.closed[-1]["held_ms"] = held_ms
-        if self._graph_job is None and not (closed and self.cfg.global_ba and
-                                            self.global_ba_pays()):
+        gba = closed and self.cfg.global_ba and self.global_ba_pays()
+        if self._graph_job is None and not gba:
             return
         worker = None
         if self.system.threads and GLOBAL_BA_PROCESS:
@@ -345,7 +344,7 @@ class LoopClosing:
             worker = BAWorker(nice=int(GLOBAL_BA_NICE))
         try:
             self.finish_correction(worker)
-            if closed and self.cfg.global_ba and self.global_ba_pays():
+            if gba:
                 self.run_global_ba(worker)
         finally:
             if worker is not None:
