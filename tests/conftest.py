@@ -150,6 +150,36 @@ class NodeProcess:
         return open(self.log, errors="replace").read() if self.log else ""
 
 
+def registered_nodes(master_uri) -> list:
+    """Names of the nodes that have a publication, subscription or service on the master."""
+    import rosgraph
+    state = rosgraph.Master("/pytest_cleanup", master_uri=master_uri).getSystemState()
+    return sorted({n for group in state for _, nodes in group for n in nodes})
+
+
+def forget_nodes(master_uri, names):
+    """Drop stopped nodes' registrations from the shared master.
+
+    A node that was killed, or that shut down before it could unregister, stays registered under
+    its XML-RPC port. When a later test starts a node of the same name, the master tells the old
+    port to shut down, and by then the port may belong to another process (a ``rosbag play``
+    that then quits before playing). Registering each name once more from a dead address makes
+    the master drop everything the old node held (parameter subscriptions included); the
+    master's shutdown call then goes to the dead address, and unregistering that empties the node.
+    """
+    import xmlrpc.client
+    master = xmlrpc.client.ServerProxy(master_uri)
+    dead = "http://127.0.0.1:1/"     # port 1: nothing listens there
+    for name in names:
+        if name in ("/rosout",) or name.startswith("/pytest"):
+            continue
+        try:
+            master.registerPublisher(name, "/pytest_forget", "std_msgs/Empty", dead)
+            master.unregisterPublisher(name, "/pytest_forget", dead)
+        except Exception:
+            pass
+
+
 @pytest.fixture
 def start_process(roscore, tmp_path):
     """Start commands against the private master; all are stopped after the test."""
@@ -160,12 +190,14 @@ def start_process(roscore, tmp_path):
         procs.append(p)
         return p
 
+    import rosgraph
+    before = set(registered_nodes(roscore))
     yield start
     for p in procs:
         p.stop()
+    forget_nodes(roscore, set(registered_nodes(roscore)) - before)
     # a launch file with a bag sets /use_sim_time on the shared master: later tests' nodes would
     # wait for a /clock nobody publishes
-    import rosgraph
     try:
         master = rosgraph.Master("/pytest_cleanup", master_uri=roscore)
         if master.hasParam("/use_sim_time"):
