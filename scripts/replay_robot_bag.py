@@ -130,6 +130,36 @@ def _print_loops(verified, lc, gt_t, gt_T, T_base_cam):
                      c["graph_edges"]))
 
 
+def _print_gated(gated, gt_t, gt_T, T_base_cam, A):
+    """One line per pose the odometry gate judged after a gap: the tracker's motion since the last
+    tracked frame, the raw and the corrected odometry's, each against the true motion (m, deg)."""
+    print("gated poses after a gap: t, gap s, travel m; error (m/deg) of the pose, the raw "
+          "odometry's, the corrected odometry's; pose vs raw, pose vs corrected (m/deg); "
+          "base_link error in the scene (m) of the last tracked frame, the pose, the corrected "
+          "odometry's; verdict")
+    for g in gated:
+        G0, G = (_interp(gt_t, gt_T, t) for t in (g["t0"], g["t"]))
+        if G0 is None or G is None:
+            continue
+        true = inv_T(G0 @ T_base_cam) @ (G @ T_base_cam)
+        pose = inv_T(g["T0"]) @ g["T"]
+        raw = inv_T(g["raw0"]) @ g["raw"]
+        cal = None if g["cal0"] is None or g["cal"] is None else inv_T(g["cal0"]) @ g["cal"]
+        ep, rp = _rel_error(pose, true)
+        er, rr = _rel_error(raw, true)
+        ec, rc = (np.nan, np.nan) if cal is None else _rel_error(cal, true)
+        dr, ar = _rel_error(pose, raw)
+        dc, ac = (np.nan, np.nan) if cal is None else _rel_error(pose, cal)
+        ab = [float(np.linalg.norm((A @ M @ inv_T(T_base_cam))[:2, 3] - Gt[:2, 3]))
+              if M is not None else np.nan
+              for M, Gt in ((g["T0"], G0), (g["T"], G),
+                            (None if cal is None else g["T0"] @ cal, G))]
+        print("  %7.2f %5.1f %5.2f; pose %.2f/%.1f raw %.2f/%.1f cal %.2f/%.1f; vs raw %.2f/%.1f "
+              "vs cal %.2f/%.1f; scene %.2f %.2f %.2f; %s"
+              % (g["t"], g["gap"], float(np.linalg.norm(true[:3, 3])), ep, rp, er, rr, ec, rc,
+                 dr, ar, dc, ac, ab[0], ab[1], ab[2], "kept" if g["ok"] else "refused"))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("bag")
@@ -141,6 +171,9 @@ def main(argv=None) -> int:
     ap.add_argument("--no-odometry", action="store_true", help="frames without wheel odometry")
     ap.add_argument("--loops", action="store_true",
                     help="each verified loop candidate's figures against the truth")
+    ap.add_argument("--gate", type=float, default=0.0, metavar="S",
+                    help="every pose put to the tracker's odometry gate more than S s after the "
+                         "last tracked frame: its error and the raw and corrected odometry's")
     ap.add_argument("--out", default="", help=".npy of (stamp, tracked, error m, x, y) per frame")
     a = ap.parse_args(argv)
     import rosbag
@@ -186,6 +219,23 @@ def main(argv=None) -> int:
                                  path=lc_._last_path, plausible=ok))
             return ok
         lc_.plausible_correction = plausible
+    gated = []
+    if a.gate > 0:
+        tr_ = system.tracking
+        agrees_ = tr_.odometry_agrees
+
+        def odometry_agrees(frame, record=True):
+            ok = agrees_(frame, record)
+            last_ = tr_.last_frame
+            if record and last_ is not None and frame.T_cw is not None and \
+                    frame.stamp - last_.stamp > a.gate and last_.T_cw is not None:
+                gated.append(dict(t=frame.stamp, gap=frame.stamp - last_.stamp, ok=ok,
+                                  t0=last_.stamp, T0=inv_T(last_.T_cw), T=inv_T(frame.T_cw),
+                                  raw0=last_.T_odom_cam, raw=frame.T_odom_cam,
+                                  cal0=getattr(last_, "T_odom_cam_calibrated", None),
+                                  cal=getattr(frame, "T_odom_cam_calibrated", None)))
+            return ok
+        tr_.odometry_agrees = odometry_agrees
     pending, rows = {}, []
     held = None      # the last tracked frame's T_map_odom: a node without a coasted pose keeps it
     last = None      # the last tracked frame's (T_map_base, true T_world_base)
@@ -257,6 +307,8 @@ def main(argv=None) -> int:
         print(cal.summary())
     if verified:
         _print_loops(verified, lc, gt_t, gt[1], T_base_cam)
+    if gated:
+        _print_gated(gated, gt_t, gt[1], T_base_cam, A)
     if a.out:
         np.save(a.out, out)
     return 0
