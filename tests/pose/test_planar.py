@@ -323,6 +323,7 @@ def test_a_tracked_step_the_wheel_odometry_contradicts_is_refused():
     t = SimpleNamespace(last_frame=last, n_odom_step_refused=0, last_odom_refusal=None,
                         _update_last_frame=lambda: None)
     t.odometry_motion = lambda f: tr.Tracking.odometry_motion(t, f)
+    t.calibrated_odometry_motion = lambda f: None
     agrees = lambda T_cw, stamp=0.1: tr.Tracking.odometry_agrees(t, SimpleNamespace(
         stamp=stamp, T_odom_cam=odo, T_cw=T_cw, mp_ids=np.zeros(3, int)))
     assert agrees(pose(3.0)) and agrees(pose(3.5)) and agrees(pose(3.0, 0.01))
@@ -339,6 +340,41 @@ def test_a_tracked_step_the_wheel_odometry_contradicts_is_refused():
     assert not tr.Tracking.odometry_agrees(t, SimpleNamespace(
         stamp=0.1, T_odom_cam=odo, T_cw=pose(4.8), mp_ids=np.zeros(3, int)), record=False)
     assert t.n_odom_step_refused == n
+
+
+def test_a_relocalization_is_gated_about_the_calibrated_odometry():
+    """After 20 s LOST over 4 m, the raw odometry reads 2 % long and has crept 4 deg; the
+    calibrated chain has those taken out. Before the calibration applies, the wide gate about the
+    raw odometry (0.5 m + 20 % of 4 m) lets a relocalization 0.6 m to the side of the true pose
+    through; once it applies, the gate about the calibrated chain (0.25 m + 5 %) refuses it, and
+    keeps one 10 cm off."""
+    from mdr_slam.pose import tracking as tr
+    yaw = lambda deg: Rotation.from_euler("y", deg, degrees=True).as_matrix()   # optical frame
+    true = make_T(np.eye(3), [0.0, 0.0, 4.0])               # T_odom_cam: 4 m straight on
+    raw = make_T(yaw(4.0), [0.0, 0.0, 4.08])
+    calib = SimpleNamespace(calibrated=False)
+    last = SimpleNamespace(stamp=0.0, T_odom_cam=np.eye(4), T_odom_cam_calibrated=np.eye(4),
+                           T_cw=np.eye(4))
+    t = SimpleNamespace(last_frame=last, n_odom_step_refused=0, last_odom_refusal=None,
+                        _update_last_frame=lambda: None,
+                        system=SimpleNamespace(odometry_calibration=calib))
+    t.odometry_motion = lambda f: tr.Tracking.odometry_motion(t, f)
+    t.calibrated_odometry_motion = lambda f: tr.Tracking.calibrated_odometry_motion(t, f)
+
+    def agrees(side):
+        T_wc = true.copy()
+        T_wc[0, 3] = side
+        return tr.Tracking.odometry_agrees(t, SimpleNamespace(
+            stamp=20.0, T_odom_cam=raw, T_odom_cam_calibrated=true, T_cw=inv_T(T_wc),
+            mp_ids=np.zeros(3, int)))
+    assert agrees(0.6) and agrees(0.1)
+    calib.calibrated = True
+    assert not agrees(0.6)
+    assert t.last_odom_refusal[1] == pytest.approx(0.6, abs=1e-6)
+    assert agrees(0.1)
+    # a frame without the calibrated chain (none computed): the raw gate
+    last.T_odom_cam_calibrated = None
+    assert agrees(0.6)
 
 
 def _track_with_odometry(poses, blank):

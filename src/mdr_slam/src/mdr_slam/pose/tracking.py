@@ -60,6 +60,10 @@ ODOMETRY_GATE_M = 0.5          # a pose (tracked, relocalized) is refused when i
 ODOMETRY_GATE_REL = 0.2        # this + REL x the distance travelled from where the odometry says the
 ODOMETRY_GATE_DEG = 15.0       # robot is, or turned by more than this + DEG_PER_M x that distance
 ODOMETRY_GATE_DEG_PER_M = 3.0  # (wheel odometry drifts a few percent, ~1-2 deg/m; a wrong place is m away)
+ODOMETRY_GATE_CAL_M = 0.25    # the same gate about the calibrated odometry (OdometryCalibration), once
+ODOMETRY_GATE_CAL_REL = 0.05   # it is applied: with its scale, rotation scale and yaw creep taken out,
+ODOMETRY_GATE_CAL_DEG = 5.0    # a base's dead reckoning is good to centimetres and a degree over metres,
+ODOMETRY_GATE_CAL_DEG_PER_M = 0.5  # where a relocalization on a look-alike lands decimetres off
 ODOMETRY_STEP_S = 0.5          # a pose tracked this soon after the last tracked frame is refused when its
 ODOMETRY_STEP_M = 0.03         # motion since differs from the odometry's by more than this + REL x the
 ODOMETRY_STEP_DEG = 1.0        # odometry's translation, or this + REL x its rotation: over a frame or
@@ -359,7 +363,11 @@ class Tracking:
         tracked frame (True without odometry): within ODOMETRY_GATE_M + ODOMETRY_GATE_REL x the
         distance travelled, and ODOMETRY_GATE_DEG + ODOMETRY_GATE_DEG_PER_M x that distance. A
         room's repeated furniture and posters can match a wrong keyframe well enough for PnP; a
-        wheeled base cannot have jumped there.
+        wheeled base cannot have jumped there. Once the odometry is calibrated the gate is
+        centred on the calibrated odometry (:meth:`calibrated_odometry_motion`) with the
+        ODOMETRY_GATE_CAL_* bounds: a relocalization after a blank wall that lands half a
+        metre from where the corrected wheels put the base is a look-alike, not the wheels'
+        error.
 
         A pose within ODOMETRY_STEP_S of the last tracked frame is held to the odometry's step
         too: ODOMETRY_STEP_M + ODOMETRY_STEP_REL x its translation and ODOMETRY_STEP_DEG +
@@ -372,13 +380,21 @@ class Tracking:
         if odo is None or frame.T_cw is None:
             return True
         self._update_last_frame()
-        pred = odo @ self.last_frame.T_cw
-        travel = float(np.linalg.norm(odo[:3, 3]))
+        cal = self.calibrated_odometry_motion(frame)
+        if cal is not None:
+            centre = cal
+            g_m, g_rel, g_deg, g_deg_m = (ODOMETRY_GATE_CAL_M, ODOMETRY_GATE_CAL_REL,
+                                          ODOMETRY_GATE_CAL_DEG, ODOMETRY_GATE_CAL_DEG_PER_M)
+        else:
+            centre = odo
+            g_m, g_rel, g_deg, g_deg_m = (ODOMETRY_GATE_M, ODOMETRY_GATE_REL, ODOMETRY_GATE_DEG,
+                                          ODOMETRY_GATE_DEG_PER_M)
+        pred = centre @ self.last_frame.T_cw
+        travel = float(np.linalg.norm(centre[:3, 3]))
         D = inv_T(pred) @ frame.T_cw
         dist = float(np.linalg.norm(inv_T(frame.T_cw)[:3, 3] - inv_T(pred)[:3, 3]))
         ang = float(np.degrees(np.linalg.norm(Rotation.from_matrix(D[:3, :3]).as_rotvec())))
-        agrees = dist <= ODOMETRY_GATE_M + ODOMETRY_GATE_REL * travel and \
-            ang <= ODOMETRY_GATE_DEG + ODOMETRY_GATE_DEG_PER_M * travel
+        agrees = dist <= g_m + g_rel * travel and ang <= g_deg + g_deg_m * travel
         if agrees and frame.stamp - self.last_frame.stamp <= float(ODOMETRY_STEP_S):
             turn = float(np.degrees(np.linalg.norm(Rotation.from_matrix(odo[:3, :3]).as_rotvec())))
             agrees = dist <= ODOMETRY_STEP_M + ODOMETRY_STEP_REL * travel and \
@@ -388,6 +404,20 @@ class Tracking:
             self.last_odom_refusal = (frame.stamp, dist, ang, travel,
                                       int(np.count_nonzero(frame.mp_ids >= 0)))
         return agrees
+
+    def calibrated_odometry_motion(self, frame: Frame) -> Optional[np.ndarray]:
+        """As :meth:`odometry_motion`, on the calibrated odometry (``T_odom_cam_calibrated``),
+        once the system's :class:`OdometryCalibration` applies its fit; None before, or when
+        either frame lacks it."""
+        calib = getattr(self.system, "odometry_calibration", None)
+        last = self.last_frame
+        if calib is None or not calib.calibrated or last is None:
+            return None
+        a = getattr(last, "T_odom_cam_calibrated", None)
+        b = getattr(frame, "T_odom_cam_calibrated", None)
+        if a is None or b is None:
+            return None
+        return normalize_pose(inv_T(b) @ a)
 
     def has_motion(self, frame: Frame) -> bool:
         """A motion to predict ``frame``'s pose from the last frame's: odometry or velocity."""
