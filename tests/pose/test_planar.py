@@ -331,6 +331,7 @@ def test_a_tracked_step_the_wheel_odometry_contradicts_is_refused():
     assert not agrees(pose(4.8))
     assert not agrees(pose(3.0, 0.05))
     assert t.n_odom_step_refused == 2 and t.last_odom_refusal[0] == pytest.approx(0.1)
+    assert t.last_odom_refusal[-1] == "step"
     last.stamp = -1.0                              # a second since the last tracked frame
     assert agrees(pose(4.8)) and agrees(pose(3.0, 0.05))
     assert not agrees(pose(20.0))
@@ -371,6 +372,7 @@ def test_a_relocalization_is_gated_about_the_calibrated_odometry():
     calib.calibrated = True
     assert not agrees(0.6)
     assert t.last_odom_refusal[1] == pytest.approx(0.6, abs=1e-6)
+    assert t.last_odom_refusal[-1] == "calibrated odometry"
     assert agrees(0.1)
     # a frame without the calibrated chain (none computed): the raw gate
     last.T_odom_cam_calibrated = None

@@ -233,6 +233,13 @@ def test_pose_node_stages_split_a_frame_into_making_tracking_and_the_tracking_cp
     got = {k: list(v) for k, v in relay.stages.items() if v}
     assert got == {"frame": [40.0], "tracking": [30.0], "tracking_cpu": [12.0],
                    "map_lock_wait": [1.5]}
+    # a refused pose is logged with the check that refused it
+    warned = []
+    relay.warn = lambda key, text: warned.append(text)
+    res.odom_refusal, res.stamp = (0.62, 4.0, 2.1, 66, "calibrated odometry"), 128.9
+    PoseRelay.note_tracking(relay, res)
+    assert len(warned) == 1 and "0.62 m / 4 deg" in warned[0] and "66 points" in warned[0] and \
+        "refused at 128.900 (the calibrated odometry check)" in warned[0], warned
 
 
 def test_lost_with_wheel_odometry_map_to_odom_follows_the_coasted_pose():

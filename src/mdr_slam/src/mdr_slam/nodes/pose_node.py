@@ -242,7 +242,8 @@ class PoseRelay:
         if refusal is not None:
             self.warn("odomrefused", "pose_node: a pose %.2f m / %.0f deg from where the wheel "
                       "odometry puts the camera (%.2f m travelled since the last tracked frame, "
-                      "%d points) was refused at %.3f" % (*refusal, res.stamp))
+                      "%d points) was refused at %.3f (the %s check)"
+                      % (*refusal[:4], res.stamp, refusal[4] if len(refusal) > 4 else "odometry"))
         if res.state == "LOST":
             t["lost"] += 1
         elif res.T_map_cam is not None:

@@ -25,8 +25,8 @@ class TrackResult:
     n_loop_closures: int = 0
     n_visual_odometry: int = 0                 # frames so far tracked frame to frame (map behind)
     n_odom_refused: int = 0                    # poses so far refused: the wheel odometry contradicted them
-    odom_refusal: Optional[Tuple[float, float, float, int]] = None   # this frame's: m, deg off the
-    #                                  odometry's prediction, m travelled since the last tracked frame, points
+    odom_refusal: Optional[Tuple[float, float, float, int, str]] = None   # this frame's: m, deg
+    #         off the odometry's prediction, m travelled since the last tracked frame, points, check
     track_ms: float = 0.0                      # tracking alone (time_ms adds sync-mode mapping)
     track_cpu_ms: float = 0.0                  # CPU of the threads making (left image) and tracking it
     lock_wait_ms: float = 0.0                  # waiting for the map lock (mapping threads)

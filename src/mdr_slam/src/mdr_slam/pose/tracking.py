@@ -151,7 +151,7 @@ class Tracking:
         self._vo = None   # (frame id, T_cw, world points, keypoints) of track_last_frame_pnp's PnP
         self.n_keyframes_created = 0                   # by this run's frames (a loaded map's not counted)
         self.n_odom_refused = 0                        # poses (tracked, relocalized) the odometry contradicted
-        self.last_odom_refusal = None                  # (stamp, m, deg, m travelled, points) of the last
+        self.last_odom_refusal = None                  # (stamp, m, deg, m travelled, points, check) of the last
         self.n_visual_odometry = 0                     # frames the map did not cover (track_visual_odometry)
         # (stamp, ref kf, T_c_ref, T_odom_cam) of the frames tracked OK lately (planar motion)
         self.odom_window: List[tuple] = []
@@ -344,7 +344,7 @@ class Tracking:
             ang <= float(ODOMETRY_WINDOW_DEG) + float(ODOMETRY_WINDOW_DEG_PER_M) * path
         if not agrees:
             self.last_odom_refusal = (frame.stamp, dist, ang, path,
-                                      int(np.count_nonzero(frame.mp_ids >= 0)))
+                                      int(np.count_nonzero(frame.mp_ids >= 0)), "window")
         return agrees
 
     def odometry_motion(self, frame: Frame) -> Optional[np.ndarray]:
@@ -395,14 +395,16 @@ class Tracking:
         dist = float(np.linalg.norm(inv_T(frame.T_cw)[:3, 3] - inv_T(pred)[:3, 3]))
         ang = float(np.degrees(np.linalg.norm(Rotation.from_matrix(D[:3, :3]).as_rotvec())))
         agrees = dist <= g_m + g_rel * travel and ang <= g_deg + g_deg_m * travel
+        check = "calibrated odometry" if cal is not None else "odometry"
         if agrees and frame.stamp - self.last_frame.stamp <= float(ODOMETRY_STEP_S):
             turn = float(np.degrees(np.linalg.norm(Rotation.from_matrix(odo[:3, :3]).as_rotvec())))
             agrees = dist <= ODOMETRY_STEP_M + ODOMETRY_STEP_REL * travel and \
                 ang <= ODOMETRY_STEP_DEG + ODOMETRY_STEP_REL * turn
             self.n_odom_step_refused += int(not agrees and record)
+            check = "step"
         if not agrees and record:
             self.last_odom_refusal = (frame.stamp, dist, ang, travel,
-                                      int(np.count_nonzero(frame.mp_ids >= 0)))
+                                      int(np.count_nonzero(frame.mp_ids >= 0)), check)
         return agrees
 
     def calibrated_odometry_motion(self, frame: Frame) -> Optional[np.ndarray]:
