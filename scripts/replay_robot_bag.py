@@ -115,7 +115,8 @@ def _print_loops(verified, lc, gt_t, gt_T, T_base_cam):
               "%.1f deg -> %.2f m %.1f deg: %s, %s"
               % (v["kf"], v["cand"], "" if c is None else c["source"], v["moved"], v["turned"],
                  v["path"], "-" if mc is None else "%d -> %d (%.1f px)" % mc[2:5],
-                 "-" if oc is None else "%.2f -> %.2f over %.1f" % (oc[3], oc[4], oc[2]),
+                 "-" if oc is None else "%.2f m %.1f deg -> %.2f m %.1f deg over %.1f m"
+                 % (oc[3], oc[5], oc[4], oc[6], oc[2]),
                  e0, r0, e1, r1, verdict,
                  "better" if e1 + 0.05 * r1 < e0 + 0.05 * r0 else "WORSE"))
     h = np.array(lc.held_ms)

@@ -425,7 +425,7 @@ def test_each_loop_closure_gets_one_log_line_with_its_checks(monkeypatch):
     monkeypatch.setattr(pose_node.rospy, "loginfo", lambda fmt, *a: lines.append(fmt % a))
     node = pose_node.OrbNode.__new__(pose_node.OrbNode)
     closed = [dict(kf=576, cand=366, stamp=313.8, moved_m=0.81, turned_deg=2.1, path_m=39.3,
-                   map_check=(120, 131, 6.5), odometry_check=(0.42, 0.95, 38.0),
+                   map_check=(120, 131, 6.5), odometry_check=(0.42, 0.95, 38.0, 1.5, 3.25),
                    source="proximity", held_ms=2750.0, graph_ms=2400.0, graph_edges=19867),
               dict(kf=590, cand=223, stamp=321.4, moved_m=0.16, turned_deg=1.6, path_m=70.4,
                    map_check=None, odometry_check=None)]
@@ -436,7 +436,8 @@ def test_each_loop_closure_gets_one_log_line_with_its_checks(monkeypatch):
     assert lines == ["pose_node: loop closed at 313.800 (proximity): keyframe 576 with keyframe "
                      "366, 39.3 m of keyframe path apart; the correction moved it 0.81 m and "
                      "turned it 2.1 deg; the loop keyframe's points matched 120 -> 131 times, "
-                     "moved 6.5 px; 0.42 -> 0.95 m off the wheel odometry over 38.0 m; tracking "
+                     "moved 6.5 px; 0.42 -> 0.95 m (1.5 -> 3.2 deg) off the wheel odometry over "
+                     "38.0 m; tracking "
                      "waited 2.75 s for it (pose graph of 19867 edges: 2.40 s)"]
     node.system.loop_closing.closed = closed
     node._log_loops()

@@ -873,8 +873,10 @@ class OrbNode(PoseMapServices):
                 checks += "; the loop keyframe's points matched %d -> %d times, moved %.1f px" \
                     % c["map_check"]
             if c["odometry_check"] is not None:
-                checks += "; %.2f -> %.2f m off the wheel odometry over %.1f m" \
-                    % c["odometry_check"]
+                e0, e1, path = c["odometry_check"][:3]
+                a0, a1 = (tuple(c["odometry_check"][3:5]) + (None, None))[:2]
+                checks += "; %.2f -> %.2f m%s off the wheel odometry over %.1f m" \
+                    % (e0, e1, "" if a0 is None else " (%.1f -> %.1f deg)" % (a0, a1), path)
             if c.get("held_ms") is not None:
                 checks += "; tracking waited %.2f s for it (pose graph of %d edges: %.2f s)" \
                     % (c["held_ms"] / 1000.0, c["graph_edges"], c["graph_ms"] / 1000.0)

@@ -219,7 +219,8 @@ class LoopClosing:
         # graph_process (the essential graph's solve, in a child process or not), held_ms (the
         # map lock held for the keyframe: tracking waits that long), and the checks it passed:
         # map_check (matches uncorrected, corrected, median px moved) and odometry_check (m off
-        # the odometry before, after, odometry path m), None where not run
+        # the odometry before, after, odometry path m, deg off it before, after), None where
+        # not run
         self.closed: List[dict] = []
         self.global_ba_runs: List[dict] = []       # global_bundle_adjustment summaries (+ ms)
         self.rejected: List[tuple] = []            # (kf, cand, moved m, turned deg, path m)
@@ -946,7 +947,8 @@ class LoopClosing:
             moved_m=float(self.last_correction[0]),
             turned_deg=float(self.last_correction[1]), path_m=float(self._last_path),
             map_check=(mc[-1][2], mc[-1][3], mc[-1][4]) if mc else None,
-            odometry_check=(oc[-1][3], oc[-1][4], oc[-1][2]) if oc else None))
+            odometry_check=(oc[-1][3], oc[-1][4], oc[-1][2], oc[-1][5], oc[-1][6])
+            if oc else None))
         self._graph_job = (poses, edges, cand.id, owner)
         if not self.system.threads:   # the caller holds the map lock: solve and apply now
             self.finish_correction(None)
