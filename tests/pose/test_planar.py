@@ -347,7 +347,7 @@ def test_a_relocalization_is_gated_about_the_calibrated_odometry():
     """After 20 s LOST over 4 m, the raw odometry reads 2 % long and has crept 4 deg; the
     calibrated chain has those taken out. Before the calibration applies, the wide gate about the
     raw odometry (0.5 m + 20 % of 4 m) lets a relocalization 0.6 m to the side of the true pose
-    through; once it applies, the gate about the calibrated chain (0.25 m + 5 %) refuses it, and
+    through; once it applies, the gate about the calibrated chain (0.15 m + 5 %) refuses it, and
     keeps one 10 cm off."""
     from mdr_slam.pose import tracking as tr
     yaw = lambda deg: Rotation.from_euler("y", deg, degrees=True).as_matrix()   # optical frame
