@@ -126,9 +126,9 @@ def _print_loops(verified, lc, gt_t, gt_T, T_base_cam):
                                      h.max() / 1e3, len(h)))
     for c in lc.closed:
         if c.get("held_ms") is not None:
-            print("  loop %d-%d: map lock held %.2f s, pose graph %.2f s (%d edges)"
-                  % (c["kf"], c["cand"], c["held_ms"] / 1000.0, c["graph_ms"] / 1000.0,
-                     c["graph_edges"]))
+            graph = "unfinished" if c.get("graph_ms") is None else "%.2f s" % (c["graph_ms"] / 1e3)
+            print("  loop %d-%d: map lock held %.2f s, pose graph %s (%d edges)"
+                  % (c["kf"], c["cand"], c["held_ms"] / 1000.0, graph, c["graph_edges"]))
 
 
 def _print_gated(gated, gt_t, gt_T, T_base_cam, A):
@@ -175,7 +175,8 @@ def main(argv=None) -> int:
     ap.add_argument("--gate", type=float, default=0.0, metavar="S",
                     help="every pose put to the tracker's odometry gate more than S s after the "
                          "last tracked frame: its error and the raw and corrected odometry's")
-    ap.add_argument("--out", default="", help=".npy of (stamp, tracked, error m, x, y) per frame")
+    ap.add_argument("--out", default="", help=".npy per frame: stamp, tracked, error (m), true x, y (m), "
+                    "error along and across the true heading (m), yaw error (deg)")
     a = ap.parse_args(argv)
     import rosbag
     bag = rosbag.Bag(a.bag)
@@ -282,10 +283,12 @@ def main(argv=None) -> int:
                                                                         - true))
                           for L in lost[:2]])
         if T is None or G is None:
-            out.append((st, 0.0, np.nan, np.nan, np.nan))
+            out.append((st, 0.0, np.nan, np.nan, np.nan, np.nan, np.nan, np.nan))
             continue
         E = A @ T
-        out.append((st, 1.0, float(np.linalg.norm(E[:2, 3] - G[:2, 3])), G[0, 3], G[1, 3]))
+        D = inv_T(G) @ E
+        out.append((st, 1.0, float(np.linalg.norm(E[:2, 3] - G[:2, 3])), G[0, 3], G[1, 3],
+                    D[0, 3], D[1, 3], np.degrees(np.arctan2(D[1, 0], D[0, 0]))))
     out = np.array(out)
     e = out[:, 2]
     ok = ~np.isnan(e)

@@ -269,6 +269,26 @@ def test_odometry_edges_hold_what_the_images_leave_free():
     assert err[True] < 0.01 and err[True] < 0.5 * err[False], err
 
 
+def test_odometry_edges_take_the_calibrated_odometry_where_both_keyframes_carry_it():
+    """A base whose raw odometry creeps 1 deg/m in yaw: over a 0.5 m keyframe gap the raw edge
+    turns the second keyframe by 0.5 deg, 2.5 x the edge's rotation sigma on a straight drive.
+    The edge is the calibrated odometry's motion where both keyframes carry it, the raw one's
+    where either does not."""
+    from scipy.spatial.transform import Rotation as R_
+    from mdr_slam.pose.optimizer import ODOM_EDGE_SIGMA_DEG, odometry_edges
+    yaw = np.radians(0.5)          # about the camera's y axis (down): the base's yaw
+    creep = make_T(R_.from_rotvec([0.0, yaw, 0.0]).as_matrix(), np.array([0.0, 0.0, 0.5]))
+    true = make_T(np.eye(3), np.array([0.0, 0.0, 0.5]))
+    kfs = [SimpleNamespace(stamp=0.0, T_odom_cam=np.eye(4), T_odom_cam_calibrated=np.eye(4)),
+           SimpleNamespace(stamp=1.0, T_odom_cam=creep, T_odom_cam_calibrated=true)]
+    fixed = np.array([True, False])
+    Z = odometry_edges(kfs, fixed)[2][0]
+    assert np.allclose(Z, true)
+    assert np.degrees(yaw) > 2.0 * ODOM_EDGE_SIGMA_DEG
+    kfs[1].T_odom_cam_calibrated = None       # made before the chain started: the raw motion
+    assert np.allclose(odometry_edges(kfs, fixed)[2][0], creep)
+
+
 def test_a_tracked_drift_the_wheel_odometry_contradicts_is_refused():
     """Under planar motion, the pose tracked now against the one about ODOMETRY_WINDOW_S ago
     (kept on its keyframe) must agree with the wheel odometry's motion in between to 0.1 m + 10 %

@@ -37,6 +37,7 @@ ODOM_EDGE_SIGMA_M = 0.01
 ODOM_EDGE_SIGMA_DEG = 0.2
 ODOM_EDGE_SIGMA_REL = 0.02
 ODOM_EDGE_MAX_GAP_S = 5.0
+ODOM_EDGES_CALIBRATED = True   # ... from the calibrated odometry (OdometryCalibration) where known
 
 
 def _skew_batch(t: np.ndarray) -> np.ndarray:
@@ -73,10 +74,21 @@ def _edge_cost(Ts, edges) -> float:
     return float(np.sum(edges[3] * r * r))
 
 
+def _odometry_motion(ka, kb) -> np.ndarray:
+    """T_a T_b^-1 of two keyframes as the wheels saw it: the calibrated odometry where both carry
+    it (OdometryCalibration's chain, with the base's scale and yaw creep taken out), else the raw."""
+    a, b = (getattr(k, "T_odom_cam_calibrated", None) for k in (ka, kb))
+    if a is None or b is None or not ODOM_EDGES_CALIBRATED:
+        a, b = ka.T_odom_cam, kb.T_odom_cam
+    return inv_T(a) @ b
+
+
 def odometry_edges(kfs, fixed_mask):
     """Wheel-odometry edges (i, j, Z, information) between keyframes of ``kfs`` next to each
     other in time (both with ``T_odom_cam``, at most ODOM_EDGE_MAX_GAP_S apart, not both fixed),
-    or None."""
+    or None. The motion is the calibrated odometry's where both keyframes carry it: a raw yaw
+    creep of a degree per metre is several times the edges' sigma over a keyframe gap, and would
+    turn the keyframes of a weakly textured stretch with it."""
     idx = sorted((c for c, k in enumerate(kfs) if getattr(k, "T_odom_cam", None) is not None),
                  key=lambda c: kfs[c].stamp)
     ei, ej, Zs, L = [], [], [], []
@@ -84,7 +96,7 @@ def odometry_edges(kfs, fixed_mask):
         if (fixed_mask[a] and fixed_mask[b]) or \
                 kfs[b].stamp - kfs[a].stamp > float(ODOM_EDGE_MAX_GAP_S):
             continue
-        Z = inv_T(kfs[a].T_odom_cam) @ kfs[b].T_odom_cam      # T_a T_b^-1 as the wheels saw it
+        Z = _odometry_motion(kfs[a], kfs[b])
         st = float(ODOM_EDGE_SIGMA_M) + float(ODOM_EDGE_SIGMA_REL) * float(np.linalg.norm(Z[:3, 3]))
         sr = np.radians(float(ODOM_EDGE_SIGMA_DEG)) + float(ODOM_EDGE_SIGMA_REL) * float(
             np.linalg.norm(Rotation.from_matrix(Z[:3, :3]).as_rotvec()))
