@@ -282,11 +282,12 @@ def test_odometry_edges_take_the_calibrated_odometry_where_both_keyframes_carry_
     kfs = [SimpleNamespace(stamp=0.0, T_odom_cam=np.eye(4), T_odom_cam_calibrated=np.eye(4)),
            SimpleNamespace(stamp=1.0, T_odom_cam=creep, T_odom_cam_calibrated=true)]
     fixed = np.array([True, False])
-    Z = odometry_edges(kfs, fixed)[2][0]
-    assert np.allclose(Z, true)
+    Z = odometry_edges(kfs, fixed)[2]
+    assert np.allclose(Z[0], true)
     assert np.degrees(yaw) > 2.0 * ODOM_EDGE_SIGMA_DEG
-    kfs[1].T_odom_cam_calibrated = None       # made before the chain started: the raw motion
-    assert np.allclose(odometry_edges(kfs, fixed)[2][0], creep)
+    kfs[1].T_odom_cam_calibrated = None       # made before the calibration applied: the raw motion
+    Z = odometry_edges(kfs, fixed)[2]
+    assert np.allclose(Z[0], creep)
 
 
 def test_a_tracked_drift_the_wheel_odometry_contradicts_is_refused():
@@ -426,15 +427,31 @@ def test_lost_frames_carry_the_pose_on_by_the_wheel_odometry():
     poses = orbit_trajectory(28, radius=1.0, arc=np.pi / 2)
     s, res = _track_with_odometry(poses, lambda i: i >= 22)
     assert [r.state for r in res[:22]].count("OK") == 22
-    # the keyframes keep the calibrated chain's pose too (the loop check compares against it)
-    assert all(k.T_odom_cam_calibrated is not None and k.T_odom_cam is not None
-               for k in s.map.keyframes.values())
+    # the keyframes keep the odometry (the loop check and the local BA's edges use it); the
+    # calibrated one only once the calibration applies, after more driving than these 1.6 m
+    assert all(k.T_odom_cam is not None for k in s.map.keyframes.values())
+    assert not s.odometry_calibration.calibrated
+    assert all(k.T_odom_cam_calibrated is None for k in s.map.keyframes.values())
     assert [r.state for r in res[24:]] == ["LOST"] * 4, [r.state for r in res]
     for r, T_wc in zip(res[24:], poses[24:]):
         assert r.T_map_cam is None and r.T_map_cam_coasted is not None
         truth = T_BASE_CAM_LEVEL @ inv_T(poses[0]) @ T_wc
         assert np.linalg.norm(r.T_map_cam_coasted[:3, 3] - truth[:3, 3]) < 0.02
     assert all(r.T_map_cam_coasted is None for r in res[:22])
+
+
+def test_frames_carry_the_calibrated_odometry_once_the_calibration_applies(monkeypatch):
+    """Before OdometryCalibration has seen enough driving its chain is the raw odometry, whose
+    yaw creep the local BA's tight calibrated edges must not take for the calibrated motion: the
+    first keyframes carry no calibrated odometry, the ones after the calibration applies do."""
+    from mdr_slam.pose import odometry_calibration
+    monkeypatch.setattr(odometry_calibration, "MIN_TRAVEL_M", 0.6)
+    poses = orbit_trajectory(28, radius=1.0, arc=np.pi / 2)
+    s, res = _track_with_odometry(poses, lambda i: False)
+    assert s.odometry_calibration.calibrated
+    kfs = sorted(s.map.keyframes.values(), key=lambda k: k.stamp)
+    carry = [k.T_odom_cam_calibrated is not None for k in kfs]
+    assert not carry[0] and carry[-1] and carry == sorted(carry), carry
 
 
 def test_a_map_reset_starts_where_the_wheel_odometry_carried_the_base():

@@ -328,7 +328,8 @@ class Frame:
         # the camera in the robot's odometry frame at this stamp (wheel odometry), when known:
         # the motion between two frames then comes from it instead of a constant velocity
         self.T_odom_cam: Optional[np.ndarray] = None
-        # ... and with the odometry's fitted errors taken out (System: OdometryCalibration)
+        # ... and with the odometry's fitted errors taken out, once they are (System:
+        # OdometryCalibration.calibrated)
         self.T_odom_cam_calibrated: Optional[np.ndarray] = None
         self.ref_kf = None
         self._grid = None

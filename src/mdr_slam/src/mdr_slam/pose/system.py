@@ -211,8 +211,9 @@ class System:
             # the tracker keeps the raw odometry (its gates allow for the raw errors); the
             # corrected chain carries the pose while it is lost
             T_odom_base = frame.T_odom_cam @ inv_T(self.T_base_cam)
-            frame.T_odom_cam_calibrated = \
-                self.odometry_calibration.correct(stamp, T_odom_base) @ self.T_base_cam
+            T_cal = self.odometry_calibration.correct(stamp, T_odom_base) @ self.T_base_cam
+            if self.odometry_calibration.calibrated:   # before, the chain is the raw odometry
+                frame.T_odom_cam_calibrated = T_cal
         if self.reset_pending_anchor and not self.map.keyframes:
             self._anchor_new_map()
         if self.map.planar is None and (not self.map.keyframes or self.planar_recheck):
