@@ -45,7 +45,7 @@ import numpy as np
 from ..geometry import inv_T, rotation_angle, transform_points
 from .ba_process import BAWorker
 from .matcher import ORBmatcher, _unique_by
-from .optimizer import Optimizer, global_bundle_adjustment, normalize_pose
+from .optimizer import Optimizer, global_bundle_adjustment, normalize_pose, odometry_motion
 from .orb import TH_LOW, hamming_knn2
 from .vocabulary import KeyFrameDatabase, bow_score, load_vocabulary
 
@@ -747,10 +747,7 @@ class LoopClosing:
         it could not judge a loop that moved the keyframe 6.3 m."""
         if kf.T_odom_cam is None or cand.T_odom_cam is None:
             return True
-        odo = inv_T(kf.T_odom_cam) @ cand.T_odom_cam          # T_kf_cand as the wheels saw it
-        a, b = (getattr(k, "T_odom_cam_calibrated", None) for k in (kf, cand))
-        if a is not None and b is not None:   # with their fitted errors taken out
-            odo = inv_T(a) @ b
+        odo = odometry_motion(kf, cand)          # T_kf_cand as the wheels saw it
         before = kf.T_cw @ inv_T(cand.T_cw)
         after = kf.T_cw @ inv_T(S) @ inv_T(cand.T_cw)
 

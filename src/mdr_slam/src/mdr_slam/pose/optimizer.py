@@ -74,11 +74,12 @@ def _edge_cost(Ts, edges) -> float:
     return float(np.sum(edges[3] * r * r))
 
 
-def _odometry_motion(ka, kb) -> np.ndarray:
+def odometry_motion(ka, kb, calibrated: bool = True) -> np.ndarray:
     """T_a T_b^-1 of two keyframes as the wheels saw it: the calibrated odometry where both carry
-    it (OdometryCalibration's chain, with the base's scale and yaw creep taken out), else the raw."""
+    it (OdometryCalibration's chain, with the base's scale and yaw creep taken out) and
+    ``calibrated``, else the raw."""
     a, b = (getattr(k, "T_odom_cam_calibrated", None) for k in (ka, kb))
-    if a is None or b is None or not ODOM_EDGES_CALIBRATED:
+    if a is None or b is None or not calibrated:
         a, b = ka.T_odom_cam, kb.T_odom_cam
     return inv_T(a) @ b
 
@@ -96,7 +97,7 @@ def odometry_edges(kfs, fixed_mask):
         if (fixed_mask[a] and fixed_mask[b]) or \
                 kfs[b].stamp - kfs[a].stamp > float(ODOM_EDGE_MAX_GAP_S):
             continue
-        Z = _odometry_motion(kfs[a], kfs[b])
+        Z = odometry_motion(kfs[a], kfs[b], ODOM_EDGES_CALIBRATED)
         st = float(ODOM_EDGE_SIGMA_M) + float(ODOM_EDGE_SIGMA_REL) * float(np.linalg.norm(Z[:3, 3]))
         sr = np.radians(float(ODOM_EDGE_SIGMA_DEG)) + float(ODOM_EDGE_SIGMA_REL) * float(
             np.linalg.norm(Rotation.from_matrix(Z[:3, :3]).as_rotvec()))

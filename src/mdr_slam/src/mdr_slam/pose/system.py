@@ -208,8 +208,8 @@ class System:
         T_odom_base = None
         if ODOMETRY_CALIBRATION and self.T_base_cam is not None and \
                 getattr(frame, "T_odom_cam", None) is not None:
-            # the tracker keeps the raw odometry (its gates allow for the raw errors); the
-            # corrected chain carries the pose while it is lost
+            # the tracker's motion model keeps the raw odometry; the corrected chain carries the
+            # pose while it is lost, and the gates, loops and local BA use it once calibrated
             T_odom_base = frame.T_odom_cam @ inv_T(self.T_base_cam)
             T_cal = self.odometry_calibration.correct(stamp, T_odom_base) @ self.T_base_cam
             if self.odometry_calibration.calibrated:   # before, the chain is the raw odometry
