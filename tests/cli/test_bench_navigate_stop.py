@@ -31,7 +31,10 @@ PARENT = textwrap.dedent("""
 
 def test_ctrl_c_lets_the_scene_process_clean_up(tmp_path):
     mark = str(tmp_path / "scene")
-    p = subprocess.Popen([sys.executable, "-c", PARENT, CHILD, mark], start_new_session=True)
+    # A terminal's processes take SIGINT's default action; a shell's background job (as CI may
+    # run the suite) inherits it ignored, and Python then never raises KeyboardInterrupt.
+    p = subprocess.Popen([sys.executable, "-c", PARENT, CHILD, mark], start_new_session=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         t_end = time.time() + 60
         while not os.path.exists(mark + ".started") and time.time() < t_end:
