@@ -16,6 +16,7 @@ the first tracked frame, as ``mdr bench --navigate`` did before it aligned by th
     python scripts/replay_robot_bag.py BAG --const optimizer.ODOM_EDGES=False  # a pose module constant
     python scripts/replay_robot_bag.py BAG --const system.ODOMETRY_CALIBRATION=False
     python scripts/replay_robot_bag.py BAG --threads --loops   # each verified loop against the truth
+    python scripts/replay_robot_bag.py BAG --until 80          # the first 80 s only
 
 ``--loops`` prints every loop candidate that passed the geometric verification: its figures
 (correction, keyframe path, map and odometry checks), whether it closed, and how far the map's
@@ -175,6 +176,8 @@ def main(argv=None) -> int:
     ap.add_argument("--gate", type=float, default=0.0, metavar="S",
                     help="every pose put to the tracker's odometry gate more than S s after the "
                          "last tracked frame: its error and the raw and corrected odometry's")
+    ap.add_argument("--until", type=float, default=0.0, metavar="S",
+                    help="stop S s (bag time) after the first stereo pair")
     ap.add_argument("--out", default="", help=".npy per frame: stamp, tracked, error (m), true x, y (m), "
                     "error along and across the true heading (m), yaw error (deg), error of the "
                     "pose in use (tracked, else coasted; m)")
@@ -242,9 +245,12 @@ def main(argv=None) -> int:
     pending, rows = {}, []
     held = None      # the last tracked frame's T_map_odom: a node without a coasted pose keeps it
     last = None      # the last tracked frame's (T_map_base, true T_world_base)
-    t0 = time.time()
+    t0, t_first = time.time(), None
     for topic, m, _ in bag.read_messages(topics=[LEFT, RIGHT]):
         st = m.header.stamp.to_sec()
+        t_first = st if t_first is None else t_first
+        if a.until > 0 and st - t_first > a.until:
+            break
         pending.setdefault(st, {})[topic] = m
         if len(pending[st]) < 2:
             continue
