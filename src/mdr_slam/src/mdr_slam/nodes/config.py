@@ -102,7 +102,7 @@ class FusionNodeConfig(Config):
     publish_grid: bool = True       # /mdr/map/grid (nav_msgs/OccupancyGrid) for move_base
     publish_nav_grid: bool = True   # /mdr/map/nav_grid: the same grid for move_base's static layer
                                     # (config/navigation/costmap_common_params.yaml), unknown cells ...
-    nav_grid_unknown: int = 0       # ... at this value (0-99): a cost the planner pays to cross them
+    nav_grid_unknown: int = 10      # ... at this value (0-99): a cost the planner pays to cross them
     grid_resolution: float = 0.05   # m per grid cell
     grid_z_min: float = 0.1         # m, obstacle band along grid_up_axis ...
     grid_z_max: float = 1.5         # m, ... up to this
