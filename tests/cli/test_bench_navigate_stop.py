@@ -20,7 +20,11 @@ CHILD = textwrap.dedent("""
 """)
 
 PARENT = textwrap.dedent("""
-    import sys
+    import signal, sys
+    # as from a terminal: a shell's background job (as CI may run the suite) has SIGINT ignored,
+    # which Python and the scene process would keep; the handler here is reset to the default
+    # action in the child at exec
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     from mdr_slam.cli.bench_navigate import _run_scene_process
     try:
         _run_scene_process([sys.executable, "-c", sys.argv[1], sys.argv[2]])
@@ -31,10 +35,7 @@ PARENT = textwrap.dedent("""
 
 def test_ctrl_c_lets_the_scene_process_clean_up(tmp_path):
     mark = str(tmp_path / "scene")
-    # A terminal's processes take SIGINT's default action; a shell's background job (as CI may
-    # run the suite) inherits it ignored, and Python then never raises KeyboardInterrupt.
-    p = subprocess.Popen([sys.executable, "-c", PARENT, CHILD, mark], start_new_session=True,
-                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    p = subprocess.Popen([sys.executable, "-c", PARENT, CHILD, mark], start_new_session=True)
     try:
         t_end = time.time() + 60
         while not os.path.exists(mark + ".started") and time.time() < t_end:
