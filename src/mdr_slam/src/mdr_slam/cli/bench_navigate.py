@@ -56,12 +56,14 @@ MAX_SPEED = 0.4           # m/s: navigation/move_base.yaml's max_vel_x (the 2x-t
 FALSE_SUCCESS_DIST = 0.5
 
 
-# the robot's own topics (sim_robot.launch, layout stereo) and the pose node's state
+# the robot's own topics (sim_robot.launch, layout stereo), the pose node's state, and what the
+# planners were given (the depth cloud the local costmap marks, the grid and map, the plans)
 RECORD_TOPICS = ("/stereo/left/image_raw", "/stereo/right/image_raw", "/stereo/left/camera_info",
                  "/stereo/right/camera_info", "/odom", "/tf", "/tf_static", "/ground_truth/odom",
                  "/cmd_vel", "/mdr/tracking_state", "/move_base/current_goal",
                  "/move_base/GlobalPlanner/plan", "/move_base/DWAPlannerROS/local_plan",
-                 "/bumper/points")
+                 "/bumper/points", "/mdr/map/nav_grid", "/mdr/map/points", "/mdr/depth/points",
+                 "/mdr/depth/raw_points", "/mdr/keyframes")
 
 
 def _planar(T: np.ndarray):

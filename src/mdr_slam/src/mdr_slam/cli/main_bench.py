@@ -94,7 +94,9 @@ def add_parser(sub, name, help_text):
     p.add_argument("--navigate-scene", default=None, help=argparse.SUPPRESS)
     p.add_argument("--record", action="store_true",
                    help="--navigate: record the robot's topics (images, camera_info, odom, tf, ground "
-                        "truth) to DIR/SCENE/robot.bag, for scripts/replay_robot_bag.py")
+                        "truth) and what the planners saw (the depth cloud, the grid, the map "
+                        "points, keyframes, plans) to DIR/SCENE/robot.bag, for "
+                        "scripts/replay_robot_bag.py")
     p.add_argument("--robot-arg", action="append", default=[], metavar="NAME:=VALUE",
                    help="--navigate: an argument for sim_robot.launch (e.g. scale:=1.0)")
     p.add_argument("--compare", action="store_true",
