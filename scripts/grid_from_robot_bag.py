@@ -9,7 +9,8 @@ camera_info, ``/tf`` (the pose node's ``map -> odom -> base_link``), ``/tf_stati
 config/depth.yaml and ``--set depth.NAME=VALUE``) and the voxel map (config/fusion.yaml), posed as
 the live depth node posed it (``--poses live``: the recorded tf at the image stamp) or by the
 truth (``--poses truth``, in the map frame the live one had at ``--from``), with a new depth
-keyframe wherever the tracker made one (its ``/mdr/keyframes`` events) unless ``--own-keyframes``.
+keyframe wherever the tracker made one (its ``/mdr/keyframes`` events) unless ``--own-keyframes``
+or the bag has none.
 At each ``--at`` time it prints the points per cloud and in the map and writes
 ``OUT/grid_<t>.png``: the live grid of that moment and the offline one, in ``map``.
 
@@ -118,6 +119,9 @@ def main(argv=None) -> int:
         B = _interp(*tf[("odom", "base_link")], t)
         return None if A is None or B is None else A @ B
 
+    own = a.own_keyframes or not len(kf_stamps)
+    if own and not a.own_keyframes:
+        print("no /mdr/keyframes in the bag: the depth filter's own keyframe rule")
     map_from_world = None
     os.makedirs(a.out, exist_ok=True)
     at = sorted(a.at)
@@ -137,7 +141,7 @@ def main(argv=None) -> int:
         if a.poses == "truth":
             T_map_base = map_from_world @ G
         T = T_map_base @ T_base_cam
-        kf = None if a.own_keyframes else bool(
+        kf = None if own else bool(
             last is not None and np.any((kf_stamps > last) & (kf_stamps <= t + 1e-4)))
         last = t
         left, right = camera.rectify(f.left, f.right)
