@@ -12,7 +12,10 @@ truth (``--poses truth``, in the map frame the live one had at ``--from``), with
 keyframe wherever the tracker made one (its ``/mdr/keyframes`` events) unless ``--own-keyframes``
 or the bag has none.
 At each ``--at`` time it prints the points per cloud and in the map and writes
-``OUT/grid_<t>.png``: the live grid of that moment and the offline one, in ``map``.
+``OUT/grid_<t>.png``: the live grid of that moment and the offline one, in ``map``. With
+``scene.json`` beside the bag (the benchmark writes it) it scores against the scene's surfaces the
+depth clouds, each posed by the truth (so the depth's error alone), and the offline map (the share
+within 5 cm, as the benchmark scores the live map).
 
     python scripts/grid_from_robot_bag.py BAG --from 20 --until 42 --at 41.5 --out DIR
     python scripts/grid_from_robot_bag.py BAG --from 20 --until 42 --at 41.5 --out DIR \\
@@ -31,6 +34,8 @@ sys.path.insert(0, os.path.join(os.path.dirname(HERE), "src", "mdr_slam", "src")
 sys.path.insert(0, HERE)
 
 from replay_robot_bag import _interp, _static_chain  # noqa: E402
+
+SCORE_DIST = 0.05   # m: a point within this of a true surface is right (the benchmark's measure)
 
 
 def _read(bag_path):
@@ -95,6 +100,8 @@ def main(argv=None) -> int:
     from mdr_slam.cli.main_run import _overrides
     from mdr_slam.config import split_known
     from mdr_slam.depth import DepthConfig, StereoDepth
+    from mdr_slam.geometry import transform_points
+    from mdr_slam.io import cloud_xyz
     from mdr_slam.fusion import VoxelMap, VoxelMapConfig
     from mdr_slam.nav import map_min_confidence, map_products
     from mdr_slam.nodes import node_configs
@@ -119,6 +126,8 @@ def main(argv=None) -> int:
         B = _interp(*tf[("odom", "base_link")], t)
         return None if A is None or B is None else A @ B
 
+    scene = _scene_beside(a.bag)
+    cloud_prec = []
     own = a.own_keyframes or not len(kf_stamps)
     if own and not a.own_keyframes:
         print("no /mdr/keyframes in the bag: the depth filter's own keyframe rule")
@@ -149,6 +158,9 @@ def main(argv=None) -> int:
         points.append(len(out.points))
         if len(out.points):
             vmap.integrate(out.points, T, t, intensity=out.intensity)
+            if scene is not None:
+                d = scene.distance_to_surfaces(transform_points(G @ T_base_cam, out.points))
+                cloud_prec.append(float(np.mean(d < SCORE_DIST)))
         while at and t >= at[0] - 1e-6:
             mark = at.pop(0)
             cloud = vmap.to_cloud(min(map_min_confidence(products)))
@@ -156,6 +168,12 @@ def main(argv=None) -> int:
             print("t %.1f: %d clouds, points per cloud median %.0f; map %d points; grid %d "
                   "occupied cells" % (t, len(points), np.median(points), len(vmap),
                                       int((data == 100).sum())), flush=True)
+            if scene is not None:
+                d = scene.distance_to_surfaces(transform_points(
+                    np.linalg.inv(map_from_world), cloud_xyz(cloud)))
+                print("  within %.0f cm of the scene: clouds (truth poses) median %.1f %%, "
+                      "map %.1f %%" % (100 * SCORE_DIST, 100 * np.median(cloud_prec),
+                                       100 * np.mean(d < SCORE_DIST)), flush=True)
             before = [g for g in grids if g[0] <= mark]
             fig, axes = plt.subplots(1, 2 if before else 1, figsize=(14 if before else 7, 6),
                                      squeeze=False)
@@ -174,6 +192,18 @@ def main(argv=None) -> int:
     if at:
         print("no frames reached %s" % ", ".join("%.1f" % t for t in at))
     return 0
+
+
+def _scene_beside(bag_path):
+    """The simulator scene named in the benchmark's ``scene.json`` beside the bag, or None."""
+    import json
+    path = os.path.join(os.path.dirname(os.path.abspath(bag_path)), "scene.json")
+    if not os.path.exists(path):
+        return None
+    from mdr_slam.sim import make_scene
+    with open(path) as f:
+        info = json.load(f)
+    return make_scene(info["scene"], seed=info["seed"])
 
 
 def camera_frame(static) -> str:
