@@ -188,6 +188,34 @@ def test_a_loop_the_wheel_odometry_contradicts_is_refused():
     assert check(stub, cur, cand, shift(3.0))
 
 
+def test_a_loop_may_not_move_the_map_away_from_the_odometry():
+    """Back 0.5 m from the loop keyframe after 30 m of odometry (bounds 1.6 m and 47 deg), the
+    odometry's heading is 5 deg off the map's. Within those bounds, a loop that turns the map
+    3 deg further from it is refused, and so is one that moves the keyframe 0.5 m away from the
+    odometry's place (allowed 0.1 + 0.01 x 30 = 0.4 m); turning it 3 deg towards the odometry,
+    1.5 deg away (a right loop where the odometry drifted the way the map did), or moving it
+    0.2 m pass."""
+    stub, cur, cand = _odometry_stub()
+    stub._odometry_path = lambda a, b: 30.0
+    Ry = lambda deg: Rotation.from_euler("y", deg, degrees=True).as_matrix()   # noqa: E731
+    C = np.array([0.0, 0.0, 0.5])
+    cur.T_cw = inv_T(make_T(np.eye(3), C))
+    cur.T_odom_cam = make_T(Ry(5.0), C)
+
+    def turn(deg):   # S turns the map by deg about the keyframe
+        return make_T(Ry(deg), C - Ry(deg) @ C)
+    check = LoopClosing.odometry_agrees
+    assert not check(stub, cur, cand, turn(-3.0))
+    _, _, _, _, _, a0, a1, ok = stub.odom_checks[-1]
+    assert (a0, a1, ok) == (pytest.approx(5.0), pytest.approx(8.0), False)
+    assert check(stub, cur, cand, turn(3.0))
+    assert check(stub, cur, cand, turn(-1.5))
+    assert not check(stub, cur, cand, make_T(np.eye(3), [0.5, 0.0, 0.0]))
+    _, _, _, e0, e1, _, _, _ = stub.odom_checks[-1]
+    assert e1 - e0 == pytest.approx(0.5, abs=0.01) and e1 < 1.6
+    assert check(stub, cur, cand, make_T(np.eye(3), [0.2, 0.0, 0.0]))
+
+
 def test_a_loop_is_checked_against_the_calibrated_odometry():
     """The raw odometry's yaw creep has put the current keyframe, 30 m on, 3 m to the side of
     where the map (right) has it; its calibrated chain agrees with the map. A look-alike loop

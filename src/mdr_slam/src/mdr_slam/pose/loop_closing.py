@@ -108,6 +108,9 @@ LOOP_ODOM_GATE_M = 0.1          # a loop may leave the map this far from the whe
 LOOP_ODOM_GATE_REL = 0.05       # ... + this x the odometry's path between the two keyframes (m) ...
 LOOP_ODOM_GATE_DEG = 2.0        # ... and turned this far + DEG_PER_M x that path, unless it was farther
 LOOP_ODOM_GATE_DEG_PER_M = 1.5  # before (wheel odometry: a few % of the path, ~1 deg/m of yaw)
+LOOP_ODOM_AWAY_M = 0.1          # whatever those bounds, a loop may move the keyframe away from where
+LOOP_ODOM_AWAY_REL = 0.01       # the odometry puts it by at most this + REL x the path (m), and turn
+LOOP_ODOM_AWAY_DEG = 2.0        # it away from the odometry's heading by at most this (deg)
 
 
 def _umeyama_batch(A: np.ndarray, B: np.ndarray) -> np.ndarray:
@@ -744,7 +747,14 @@ class LoopClosing:
         odometry is the calibrated one (OdometryCalibration: scale, rotation scale and yaw creep
         fitted against the tracked motion) where both keyframes carry it: over 37 m of a garage
         drive the raw one's yaw creep had it 3.7 m off the map before a loop and 2.9 m after, so
-        it could not judge a loop that moved the keyframe 6.3 m."""
+        it could not judge a loop that moved the keyframe 6.3 m.
+
+        Whatever the bounds, the correction may move the keyframe away from the odometry's
+        place by at most LOOP_ODOM_AWAY_M + LOOP_ODOM_AWAY_REL x the path, and turn it away from
+        the odometry's heading by at most LOOP_ODOM_AWAY_DEG. Over a room's turns the calibrated
+        odometry's heading can be 16-24 deg off after 18-25 m, so the bounds are wide; but a loop
+        that moves the map towards the truth cannot raise the disagreement by more than its own
+        correction, and a right map's loop is small."""
         if kf.T_odom_cam is None or cand.T_odom_cam is None:
             return True
         odo = odometry_motion(kf, cand)          # T_kf_cand as the wheels saw it
@@ -760,7 +770,9 @@ class LoopClosing:
         e1, a1 = off(after)
         bound_m = float(LOOP_ODOM_GATE_M) + float(LOOP_ODOM_GATE_REL) * path
         bound_deg = float(LOOP_ODOM_GATE_DEG) + float(LOOP_ODOM_GATE_DEG_PER_M) * path
-        ok = (e1 <= bound_m or e1 <= e0) and (a1 <= bound_deg or a1 <= a0)
+        ok = (e1 <= bound_m or e1 <= e0) and (a1 <= bound_deg or a1 <= a0) and \
+            e1 - e0 <= float(LOOP_ODOM_AWAY_M) + float(LOOP_ODOM_AWAY_REL) * path and \
+            a1 - a0 <= float(LOOP_ODOM_AWAY_DEG)
         self.odom_checks.append((kf.id, cand.id, round(path, 3), round(e0, 3), round(e1, 3),
                                  round(a0, 2), round(a1, 2), ok))
         return ok
