@@ -48,7 +48,7 @@ def grid(cam, step=12, margin=60):
     return u, v, (u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy
 
 
-def searched(tex_amplitude, rng, prior_error=0.05):
+def searched(tex_amplitude, rng, prior_error=0.05, noise=2.0):
     """The keyframe at x = 1.2 m, earlier keyframes at x = 0, 0.4, 0.8 m (a robot driving along
     the wall); hypotheses 5 % off the truth with a 10 % sigma, as one frame of the rig gives."""
     cam = camera()
@@ -56,14 +56,15 @@ def searched(tex_amplitude, rng, prior_error=0.05):
     ms = MotionStereo(cam, max_depth=20.0, min_depth=0.3)
     for x in (0.0, 0.4, 0.8):
         T = make_T(np.eye(3), [x, 0.0, 0.0])
-        ms.remember(T, render(cam, T, tex, rng))
+        ms.remember(T, render(cam, T, tex, rng, noise))
     T_kf = make_T(np.eye(3), [1.2, 0.0, 0.0])
     u, v, rx, ry = grid(cam)
     rho_true = np.full(len(u), 1.0 / WALL_Z, np.float32)
     mu = (rho_true * (1 + prior_error)).astype(np.float32)
     var = ((0.10 * mu) ** 2).astype(np.float32)
     stats = {}
-    idx, y, R = ms.measure(T_kf, render(cam, T_kf, tex, rng), u, v, rx, ry, mu, var, stats)
+    idx, y, R = ms.measure(T_kf, render(cam, T_kf, tex, rng, noise), u, v, rx, ry, mu, var,
+                           stats)
     return idx, y, R, rho_true, stats, len(u)
 
 
@@ -127,6 +128,42 @@ def test_a_blank_wall_gives_no_measurement():
     rng = np.random.default_rng(4)
     idx, y, R, rho_true, stats, n = searched(0.0, rng)     # sensor noise only
     assert len(idx) <= 0.01 * n, stats
+
+
+def test_a_blank_wall_is_not_searched():
+    """Patches flatter than the noise cannot match: they cost nothing."""
+    rng = np.random.default_rng(4)
+    *_, stats, n = searched(0.0, rng, noise=0.5)
+    assert stats["motion_flat"] > 0.9 * n and stats["motion_searched"] == 0, stats
+
+
+def test_the_budget_goes_to_pixels_that_two_earlier_views_see(monkeypatch):
+    """The first MOTION_MAX_PIXELS hypotheses that can be searched are, whatever comes before
+    them: pixels outside the earlier views (the robot drove to the left along the wall: the
+    left of the keyframe's image is wall the earlier keyframes did not see) do not use up the
+    budget."""
+    import mdr_slam.depth.motion_stereo as ms_module
+    cam = camera()
+    rng = np.random.default_rng(6)
+    tex = texture(rng)
+    ms = MotionStereo(cam, max_depth=20.0, min_depth=0.3)
+    for x in (2.4, 2.0, 1.6):
+        T = make_T(np.eye(3), [x, 0.0, 0.0])
+        ms.remember(T, render(cam, T, tex, rng))
+    T_kf = make_T(np.eye(3), [0.0, 0.0, 0.0])
+    u, v, rx, ry = grid(cam, step=8)
+    outside = u < 140          # at most one earlier view saw the wall there
+    order = np.concatenate([np.flatnonzero(outside), np.flatnonzero(~outside)])
+    u, v, rx, ry = u[order], v[order], rx[order], ry[order]
+    mu = np.full(len(u), 1.0 / WALL_Z, np.float32)
+    budget = int(min(outside.sum(), (~outside).sum()) // 2)
+    monkeypatch.setattr(ms_module, "MOTION_MAX_PIXELS", budget)
+    stats = {}
+    idx, y, _ = ms.measure(T_kf, render(cam, T_kf, tex, rng), u, v, rx, ry, mu,
+                           (0.1 * mu) ** 2, stats)
+    assert stats["motion_searched"] == budget, stats
+    assert len(idx) > 0.8 * budget and idx.min() >= outside.sum()
+    assert np.median(np.abs(y * WALL_Z - 1)) < 0.01
 
 
 def test_without_two_earlier_views_nothing_is_searched():

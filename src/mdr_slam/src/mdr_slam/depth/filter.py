@@ -38,7 +38,7 @@ from ..camera import StereoCamera
 from ..geometry import inv_T, is_valid_T, relative_motion
 from .config import DepthConfig
 from .densify import plane_fill
-from .motion_stereo import MOTION_GRID_STEP, MOTION_MAX_PIXELS, MotionStereo
+from .motion_stereo import MOTION_GRID_STEP, MotionStereo
 
 __all__ = ["DepthFilter", "DepthOutput", "KeyFrameDepth", "render_depth"]
 
@@ -399,8 +399,8 @@ class DepthFilter:
             rel = np.sqrt(kf.var) / kf.mu
             cand = np.flatnonzero(self._motion_cells & np.isfinite(kf.mu) & (kf.mu > 0) &
                                   ~self._converged(kf))
-        if len(cand) > MOTION_MAX_PIXELS:
-            cand = cand[np.argsort(-rel[cand], kind="stable")[:MOTION_MAX_PIXELS]]
+        # the most uncertain first: measure() searches the first MOTION_MAX_PIXELS it can
+        cand = cand[np.argsort(-rel[cand], kind="stable")]
         idx, y, R = self.motion.measure(kf.T_map_kf, grey, self._u[cand], self._v[cand],
                                         self._rx[cand], self._ry[cand], kf.mu[cand],
                                         kf.var[cand], stats)

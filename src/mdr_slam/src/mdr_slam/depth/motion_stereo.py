@@ -38,20 +38,23 @@ MOTION_MIN_BASELINE = 0.25      # m across the ray: below it the rig's own stere
 MOTION_MAX_BASELINE = 2.5       # m: beyond it the two views of a wall look too different
 MOTION_MAX_ANGLE_DEG = 20.0     # deg between the two rays to a point (patch similarity)
 MOTION_GRID_STEP = 2            # search every 2nd filter-grid cell in x and y (cost / 4)
-MOTION_MAX_PIXELS = 6000        # hypotheses searched per keyframe at most (the most uncertain)
+MOTION_MAX_PIXELS = 8000        # hypotheses searched per keyframe at most (the first ones given
+                                # that two earlier keyframes can see)
 MOTION_PATCH = 5                # samples per side of the matching patch ...
 MOTION_PATCH_STEP = 2.0         # ... this many px apart: a 9 px window (faint texture needs area)
 MOTION_BLUR_SIGMA = 1.0         # px, Gaussian pre-smoothing of both images (sensor noise)
 MOTION_STEP_PX = 2.0            # px between inverse-depth samples along a segment (the ZNCC
                                 # peak of a 9 px window is wider) ...
 MOTION_MIN_SAMPLES = 8          # ... at least this many samples (short segments)
-MOTION_SAMPLES = 32             # ... at most this many (MOTION_MAX_SEGMENT_PX / MOTION_STEP_PX)
+MOTION_SAMPLES = 64             # ... at most this many (MOTION_MAX_SEGMENT_PX / MOTION_STEP_PX)
 MOTION_MIN_SEGMENT_PX = 4.0     # shorter segment: this view adds little to the hypothesis
-MOTION_MAX_SEGMENT_PX = 64.0    # longer: steps over 2 px would miss the peak
+MOTION_MAX_SEGMENT_PX = 128.0   # longer: steps over 2 px would miss the peak (the widest
+                                # baselines, the far walls' precision, need the length)
 MOTION_MIN_ZNCC = 0.8
+MOTION_MIN_PATCH_STD = 1.5      # grey levels: flatter reference patches are not searched
 MOTION_MIN_MARGIN = 0.1         # best ZNCC minus the best one away from the peak
 MOTION_PEAK_EXCLUSION_PX = 4.0  # px either side of the peak that belong to it
-MOTION_VIEWS = 4                # earlier keyframes searched per pixel at most (the widest baselines)
+MOTION_VIEWS = 3                # earlier keyframes searched per pixel at most (the widest baselines)
 MOTION_MIN_VIEWS = 2            # agreeing views a measurement needs
 MOTION_CHI2_AGREE = 6.63        # a view agrees: (rho - median)^2 <= this * (its var + the best var)
 MOTION_MATCH_SIGMA_PX = 0.2     # px, matching error floor of a distinct ZNCC peak ...
@@ -135,7 +138,10 @@ class MotionStereo:
                 stats: Optional[Dict[str, float]] = None
                 ) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Inverse-depth measurements of hypotheses at keyframe pixels (u, v) (rays rx, ry with
-        unit z; inverse depth ``mu`` with variance ``var``). Returns (index into the inputs,
+        unit z; inverse depth ``mu`` with variance ``var``), in the order given: the first
+        MOTION_MAX_PIXELS that MOTION_MIN_VIEWS earlier keyframes see are searched (choosing
+        before the views are known spent most of the budget on pixels no two views see; the
+        segments' geometry costs little next to the search). Returns (index into the inputs,
         measurement, its variance) of the pixels matched in MOTION_MIN_VIEWS agreeing earlier
         keyframes."""
         stats = {} if stats is None else stats
@@ -158,11 +164,16 @@ class MotionStereo:
         order = np.argsort(-length, axis=0)[:MOTION_VIEWS]
         n_usable = (length > 0).sum(axis=0)
         cand = np.flatnonzero(n_usable >= MOTION_MIN_VIEWS)
+        # a patch flatter than the noise cannot reach MOTION_MIN_ZNCC anywhere: not searched
+        pu, pv = u[cand, None] + self._ou, v[cand, None] + self._ov
+        ref = _sample(ref_img, pu, pv)                                              # (M, P)
+        textured = np.flatnonzero(ref.std(axis=1) >= MOTION_MIN_PATCH_STD)
+        stats["motion_flat"] = int(len(cand) - len(textured))
+        keep = textured[:MOTION_MAX_PIXELS]
+        cand, pu, pv, ref = cand[keep], pu[keep], pv[keep], ref[keep]
         stats["motion_searched"] = int(len(cand))
         if len(cand) == 0:
             return empty
-        pu, pv = u[cand, None] + self._ou, v[cand, None] + self._ov
-        ref = _sample(ref_img, pu, pv)                                              # (M, P)
         gx, gy = _gradients(ref_img)
         ref_gx, ref_gy = _sample(gx, pu, pv), _sample(gy, pu, pv)
         V = order.shape[0]
