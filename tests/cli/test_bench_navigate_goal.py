@@ -73,11 +73,20 @@ def _goal(x, y):
     return g
 
 
-def _client(rospy, ns):
+def _client(rospy, ns, server):
+    """A client of ``server`` whose result subscription is connected: the result topic is not
+    latched, so a goal that succeeds at once would otherwise lose its result on a loaded machine
+    (and the client would wait for it forever)."""
+    import time
+
     import actionlib
     from move_base_msgs.msg import MoveBaseAction
     client = actionlib.SimpleActionClient(ns, MoveBaseAction)
     assert client.wait_for_server(rospy.Duration(30.0))
+    deadline = time.monotonic() + 60.0
+    while server.server.action_server.result_pub.get_num_connections() < 1:
+        assert time.monotonic() < deadline, "the client never subscribed to %s/result" % ns
+        time.sleep(0.05)
     return client
 
 
@@ -92,7 +101,7 @@ def test_a_success_far_from_the_goal_sends_it_again_once(rospy_client, move_base
     from mdr_slam.cli.bench_navigate import _drive_to
     ns = "fake_move_base_%d" % len(stale)
     server = move_base(ns, stale=stale)
-    client = _client(rospy_client, ns)
+    client = _client(rospy_client, ns, server)
     target = np.array([2.0, 0.0])
     state, resent = _drive_to(client, _goal(*target), GoalStatus.SUCCEEDED, lambda: False,
                               lambda: float(np.linalg.norm(server.base - target)))
@@ -107,13 +116,13 @@ def test_an_unknown_base_pose_is_not_taken_for_the_race_and_give_up_cancels(rosp
     from actionlib_msgs.msg import GoalStatus
     from mdr_slam.cli.bench_navigate import _drive_to
     server = move_base("fake_move_base_unknown", stale=(0,))
-    client = _client(rospy_client, "fake_move_base_unknown")
+    client = _client(rospy_client, "fake_move_base_unknown", server)
     state, resent = _drive_to(client, _goal(2.0, 0.0), GoalStatus.SUCCEEDED, lambda: False,
                               lambda: None)     # no tf map -> base_link: nothing to judge by
     assert (state, resent, server.n_goals) == (GoalStatus.SUCCEEDED, 0, 1)
 
     server = move_base("fake_move_base_never", never=True)
-    client = _client(rospy_client, "fake_move_base_never")
+    client = _client(rospy_client, "fake_move_base_never", server)
     calls = []
 
     def give_up():
