@@ -58,7 +58,7 @@ class DepthConfig(Config):
     reinit_min_rejections: int = 3  # restart a pixel gated at least this often ...
     reinit_ratio: float = 2.0       # ... and more than this many times as often as accepted
     fill_holes: bool = True         # start hypotheses in keyframe holes from later frames
-    motion_stereo: bool = True      # also match new keyframes' unconverged pixels in earlier keyframes (wider baselines: far walls)
+    motion_stereo: bool = False     # also match new keyframes' unconverged pixels in earlier keyframes (wider baselines: far walls)
     tau: float = 0.01               # publish when sigma_Z / Z <= tau: lower, fewer and more accurate points
     min_obs: int = 3                # ... and at least this many fused observations (init included)
     carry_over: bool = True         # carry well-observed points into the next keyframe
