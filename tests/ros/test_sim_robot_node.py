@@ -174,7 +174,11 @@ def test_sim_robot_streams_like_a_driver_and_follows_cmd_vel(rospy_client, start
     assert all(m.header.frame_id == "map" for m in rec.get("gt"))
     gto = rec.get("gt_odom")
     assert gto[-1].header.frame_id == "map" and gto[-1].child_frame_id == "base_link"
-    for m in gto[-5:]:
+    # the two topics are recorded by separate subscribers: on a loaded machine the last
+    # ground-truth odometry can arrive before the camera pose of the same stamp
+    both = [m for m in gto if round(_stamp(m), 6) in gt][-5:]
+    assert len(both) == 5, (sorted(gt)[-3:], [_stamp(m) for m in gto[-3:]])
+    for m in both:
         T_map_base = cv.pose_to_matrix(m.pose.pose)
         np.testing.assert_allclose(gt[round(_stamp(m), 6)], T_map_base @ T_base_left, atol=1e-6)
     base0 = cv.pose_to_matrix(gto[0].pose.pose)
