@@ -29,10 +29,12 @@ class _MoveBase:
         self.server.start()
 
     def close(self):
-        """Stop the server's (non-daemon) execute thread, which would hold the test process."""
+        """Stop the server's (non-daemon) execute thread, which would hold the test process, and
+        its status timer, which would publish on a closed topic once rospy shuts down."""
         with self.server.terminate_mutex:
             self.server.need_to_terminate = True
         self.server.execute_thread.join(10.0)
+        self.server.action_server.stop()
 
     def execute(self, goal):
         with self.lock:
